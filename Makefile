@@ -1,0 +1,53 @@
+# The two commands of the README: `make demo` and `make test`. Each does all the set-up on its own:
+# system libraries (root: apt-get; otherwise the exact command is printed), .venv, the project.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.palletpilot-installed
+OUT    ?= out
+# Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp.
+SYSTEM_LIBS := libusb-1.0-0 libgomp1
+
+.PHONY: demo test lint setup system-libs clean
+
+demo: setup
+	$(BIN)/palletpilot map check missions/warehouse.yaml
+	$(BIN)/palletpilot plan missions/warehouse.yaml charger rack_b3 --json
+	$(BIN)/palletpilot map show missions/warehouse.yaml --route charger rack_b3 --out $(OUT)/route.png
+	@echo "demo: route drawn to $(OUT)/route.png"
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+setup: system-libs $(STAMP)
+
+system-libs:
+	@missing=""; for p in $(SYSTEM_LIBS); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if ! $(PYTHON) -c "import ensurepip, venv" >/dev/null 2>&1; then \
+	  missing="$$missing python3-venv"; \
+	fi; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing system packages:$$missing"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing >/dev/null; \
+	  else \
+	    echo "missing system packages:$$missing; run: sudo apt-get install -y$$missing" >&2; exit 1; \
+	  fi; \
+	fi
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache

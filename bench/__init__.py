@@ -1,0 +1,9 @@
+"""Benchmarks behind `palletpilot bench NAME`: each measures and prints figures, seeded.
+
+A benchmark module has `add_arguments(parser)` and `run(args) -> dict` (the JSON it prints).
+Public API: `BENCHMARKS`, the registry of name -> module path.
+"""
+
+BENCHMARKS: dict[str, str] = {
+    "roadmap": "bench.roadmap",
+}

@@ -1,0 +1,65 @@
+"""Vehicle parameters shared by the simulator and the controller (file: `missions/forklift.yaml`).
+
+The forklift is a tricycle: the forklift frame's origin sits midway between the forks on the axle of
+the fixed load wheels, and the steered drive wheel is `wheelbase` behind it, at the end away from
+the forks. Its tightest turn is therefore `tan(max_steering) / wheelbase` (1/m) at the origin.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from control.errors import ControlError
+from geometry.fileio import load_yaml_model
+
+
+class MastParams(BaseModel):
+    """Fork carriage lift: heights of the fork bottoms (m) and lift speed (m/s)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min_height: float = Field(0.0, ge=0.0)
+    max_height: float = Field(2.0, gt=0.0)
+    lift_speed: float = Field(0.2, gt=0.0)
+    lower_speed: float = Field(0.3, gt=0.0)
+
+
+class VehicleParams(BaseModel):
+    """Kinematic and actuator limits of the forklift (SI units unless the name says otherwise)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "forklift"
+    wheelbase: float = Field(gt=0.0, description="load-wheel axle (origin) to steered drive wheel, m")
+    max_steering_deg: float = Field(gt=0.0, lt=90.0)
+    max_steering_rate_deg_s: float = Field(gt=0.0)
+    max_speed_forward: float = Field(gt=0.0, description="m/s, fork tips leading")
+    max_speed_reverse: float = Field(gt=0.0, description="m/s")
+    max_accel: float = Field(gt=0.0, description="m/s^2")
+    max_decel: float = Field(gt=0.0, description="m/s^2")
+    actuator_lag_s: float = Field(0.1, ge=0.0, description="first-order lag of speed and steering")
+    mast: MastParams = MastParams()
+
+    @model_validator(mode="after")
+    def _mast_range(self) -> VehicleParams:
+        if self.mast.max_height <= self.mast.min_height:
+            raise ValueError("mast.max_height must be above mast.min_height")
+        return self
+
+    @property
+    def max_steering(self) -> float:
+        """Largest steering angle (rad)."""
+        return math.radians(self.max_steering_deg)
+
+    @property
+    def max_curvature(self) -> float:
+        """Tightest path curvature (1/m) the forklift origin can follow."""
+        return math.tan(self.max_steering) / self.wheelbase
+
+
+def load_vehicle(path: str | Path) -> VehicleParams:
+    """Load a vehicle file; every problem raises `ControlError` naming the file and field."""
+    return load_yaml_model(path, VehicleParams, ControlError)

@@ -1,0 +1,149 @@
+"""The `palletpilot` command line.
+
+Commands (exit 0 on success, 2 on bad input with one line per problem on stderr, never a traceback):
+- `palletpilot map check MAP [--vehicle VEHICLE.yaml]`
+- `palletpilot map show MAP --out PNG [--route FROM TO]`
+- `palletpilot plan MAP FROM TO [--json]`
+- `palletpilot bench NAME [--json] [bench options]` (see `bench/`)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from geometry import PalletpilotError
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+def _max_curvature(map_path: str, vehicle: str | None) -> tuple[float | None, str | None]:
+    """The curvature limit (1/m) from --vehicle or the map's own `vehicle` file, and that file's name."""
+    from control import load_vehicle
+    from roadmap import map_vehicle_file
+
+    path = Path(vehicle) if vehicle else map_vehicle_file(map_path)
+    if path is None:
+        return None, None
+    return load_vehicle(path).max_curvature, str(path)
+
+
+def cmd_map_check(args: argparse.Namespace) -> int:
+    """Validate a map file, including curvature against the vehicle."""
+    from roadmap import check_map
+
+    kappa, vehicle = _max_curvature(args.map, args.vehicle)
+    roadmap, problems = check_map(args.map, kappa)
+    if problems:
+        for line in problems:
+            print(line, file=sys.stderr)
+        return EXIT_BAD_INPUT
+    assert roadmap is not None
+    limit = f", curvature limit {kappa:.3f} 1/m from {vehicle}" if kappa else ", no vehicle file: curvature unchecked"
+    print(f"{args.map}: ok ({len(roadmap.nodes())} nodes, {len(roadmap.edges())} edges{limit})")
+    return EXIT_OK
+
+
+def cmd_map_show(args: argparse.Namespace) -> int:
+    """Draw the map (and optionally a planned route) to a PNG."""
+    from roadmap import Planner, load_map
+    from roadmap.draw import save_roadmap_png
+
+    roadmap = load_map(args.map)
+    route = Planner(roadmap).plan(*args.route) if args.route else None
+    out = save_roadmap_png(roadmap, args.out, route)
+    print(f"wrote {out}")
+    return EXIT_OK
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """Plan the shortest route between two nodes."""
+    from roadmap import Planner, load_map
+
+    route = Planner(load_map(args.map)).plan(args.start, args.goal)
+    if args.json:
+        print(json.dumps(route.to_json(), indent=2))
+    else:
+        print(" -> ".join(route.nodes))
+        print(f"{route.length:.2f} m over {len(route.edges)} edges")
+    return EXIT_OK
+
+
+def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:
+    """Run one benchmark by name and print its figures."""
+    from bench import BENCHMARKS
+
+    if args.name not in BENCHMARKS:
+        print(f"bench: unknown benchmark '{args.name}' (known: {', '.join(sorted(BENCHMARKS))})", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    module = importlib.import_module(BENCHMARKS[args.name])
+    parser = argparse.ArgumentParser(prog=f"palletpilot bench {args.name}")
+    module.add_arguments(parser)
+    result = module.run(parser.parse_args(extra))
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        width = max(len(k) for k in result)
+        for key, value in result.items():
+            print(f"{key:<{width}}  {value}")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of `palletpilot`."""
+    parser = argparse.ArgumentParser(prog="palletpilot", description="Mission executor for automated forklifts.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    map_p = sub.add_parser("map", help="check or draw a map file")
+    map_sub = map_p.add_subparsers(dest="map_command", required=True)
+    check = map_sub.add_parser("check", help="validate a map file (exit 2 listing every problem)")
+    check.add_argument("map")
+    check.add_argument("--vehicle", help="vehicle file for the curvature limit (default: the map's own)")
+    check.set_defaults(func=cmd_map_check)
+    show = map_sub.add_parser("show", help="draw a map to a PNG")
+    show.add_argument("map")
+    show.add_argument("--out", required=True, help="PNG file to write")
+    show.add_argument("--route", nargs=2, metavar=("FROM", "TO"), help="also draw the planned route")
+    show.set_defaults(func=cmd_map_show)
+
+    plan = sub.add_parser("plan", help="plan the shortest route between two nodes")
+    plan.add_argument("map")
+    plan.add_argument("start", metavar="FROM")
+    plan.add_argument("goal", metavar="TO")
+    plan.add_argument("--json", action="store_true", help="print nodes, edges and length_m as JSON")
+    plan.set_defaults(func=cmd_plan)
+
+    bench = sub.add_parser("bench", help="run a benchmark (options after NAME go to the benchmark)")
+    bench.add_argument("name")
+    bench.add_argument("--json", action="store_true")
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `palletpilot` console script; returns the exit code."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    try:
+        if args.command == "bench":
+            return cmd_bench(args, extra)
+        if extra:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        return args.func(args)
+    except PalletpilotError as exc:
+        for line in exc.problems:
+            print(line, file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

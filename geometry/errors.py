@@ -1,0 +1,23 @@
+"""The one error style of palletpilot.
+
+Every package raises a subclass of `PalletpilotError` whose message names the file, node
+or frame at fault. The CLI prints the message as one line on stderr and exits with code 2.
+`geometry` is the package every other one may import, so the base class lives here.
+"""
+
+from __future__ import annotations
+
+
+class PalletpilotError(Exception):
+    """Base of all expected palletpilot errors (bad input, infeasible requests).
+
+    `problems` holds one line per problem when several were found at once (a map check).
+    """
+
+    def __init__(self, message: str, problems: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.problems: list[str] = list(problems) if problems else [message]
+
+
+class GeometryError(PalletpilotError):
+    """A pose or transform that cannot be built (wrong shape, non-rigid matrix)."""

@@ -1,0 +1,46 @@
+"""The roadmap: nodes and curves, map files, routes, reference paths, overlays, curve synthesis.
+
+Public API:
+- `Roadmap`, `Node`, `NodeType`, `Edge`, `Direction`: the graph (networkx DiGraph inside);
+  `Roadmap.overlay()` adds temporary nodes and edges for a scope; `Roadmap.check(max_curvature)`.
+- `Line`, `Arc`, `CubicBezier` (`Curve`): arc-length parametrised curves in the world frame.
+- `load_map(path)`, `check_map(path, max_curvature)`: YAML map files (format in `roadmap.mapfile`).
+- `Planner(roadmap).plan(start, goal)` -> `Route` (nodes, edges, length, `node_before`).
+- `reference_path(route, step_m)` -> `ReferencePath` of `PathSegment`s split at direction changes.
+- `connect(start, end, max_curvature)`: a feasible curve between two poses, or `RoadmapError` why not.
+- `RoadmapError`.
+"""
+
+from roadmap.curves import Arc, CubicBezier, Curve, CurveSamples, Line
+from roadmap.errors import RoadmapError
+from roadmap.graph import Direction, Edge, Node, NodeType, Overlay, Roadmap
+from roadmap.mapfile import build_curve, check_map, load_map, map_vehicle_file
+from roadmap.path import PathSegment, ReferencePath, reference_path
+from roadmap.planner import Planner, Route, plan_route
+from roadmap.synthesis import connect
+
+__all__ = [
+    "Arc",
+    "CubicBezier",
+    "Curve",
+    "CurveSamples",
+    "Direction",
+    "Edge",
+    "Line",
+    "Node",
+    "NodeType",
+    "Overlay",
+    "PathSegment",
+    "Planner",
+    "ReferencePath",
+    "Roadmap",
+    "RoadmapError",
+    "Route",
+    "build_curve",
+    "check_map",
+    "connect",
+    "load_map",
+    "map_vehicle_file",
+    "plan_route",
+    "reference_path",
+]
