@@ -1,8 +1,8 @@
 """Vehicle parameters shared by the simulator and the controller (file: `missions/forklift.yaml`).
 
-The forklift is a tricycle: the forklift frame's origin sits midway between the forks on the axle of
-the fixed load wheels, and the steered drive wheel is `wheelbase` behind it, at the end away from
-the forks. Its tightest turn is therefore `tan(max_steering) / wheelbase` (1/m) at the origin.
+The forklift is a tricycle: the forklift frame's origin sits midway between the forks on the fixed
+front axle (at the fork heels), and the steered drive wheel is `wheelbase` behind it, at the end away
+from the forks. Its tightest turn is therefore `tan(max_steering) / wheelbase` (1/m) at the origin.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class VehicleParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     name: str = "forklift"
-    wheelbase: float = Field(gt=0.0, description="load-wheel axle (origin) to steered drive wheel, m")
+    wheelbase: float = Field(gt=0.0, description="fixed front axle (origin) to steered drive wheel, m")
     max_steering_deg: float = Field(gt=0.0, lt=90.0)
     max_steering_rate_deg_s: float = Field(gt=0.0)
     max_speed_forward: float = Field(gt=0.0, description="m/s, fork tips leading")

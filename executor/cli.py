@@ -4,6 +4,7 @@ Commands (exit 0 on success, 2 on bad input with one line per problem on stderr,
 - `palletpilot map check MAP [--vehicle VEHICLE.yaml]`
 - `palletpilot map show MAP --out PNG [--route FROM TO]`
 - `palletpilot plan MAP FROM TO [--json]`
+- `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
 - `palletpilot bench NAME [--json] [bench options]` (see `bench/`)
 """
 
@@ -75,6 +76,21 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_sim_render(args: argparse.Namespace) -> int:
+    """Render one frame bundle of a scenario from its start node (or --at NODE)."""
+    from perception.frames import save_bundle
+    from sim.scenario import load_scenario
+    from sim.simulator import Simulator
+
+    sim = Simulator(load_scenario(args.scenario), seed=args.seed, start=args.at)
+    if args.fork_height is not None:
+        sim.forklift.command_fork_height(args.fork_height)
+        sim.forklift.state.fork_height = sim.forklift.fork_height_cmd
+    out = save_bundle(args.out, sim.grab())
+    print(f"wrote {out} ({sim.camera.width}x{sim.camera.height}, fork height {sim.fork_height:.3f} m)")
+    return EXIT_OK
+
+
 def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:
     """Run one benchmark by name and print its figures."""
     from bench import BENCHMARKS
@@ -118,6 +134,16 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("goal", metavar="TO")
     plan.add_argument("--json", action="store_true", help="print nodes, edges and length_m as JSON")
     plan.set_defaults(func=cmd_plan)
+
+    sim = sub.add_parser("sim", help="the simulated warehouse")
+    sim_sub = sim.add_subparsers(dest="sim_command", required=True)
+    render = sim_sub.add_parser("render", help="render one RGB-D frame bundle (.npz) of a scenario")
+    render.add_argument("scenario")
+    render.add_argument("--out", required=True, help="frame bundle to write (.npz)")
+    render.add_argument("--fork-height", type=float, help="fork height (m) for the frame")
+    render.add_argument("--at", help="node to stand at (default: the scenario's start)")
+    render.add_argument("--seed", type=int, help="override the scenario's seed")
+    render.set_defaults(func=cmd_sim_render)
 
     bench = sub.add_parser("bench", help="run a benchmark (options after NAME go to the benchmark)")
     bench.add_argument("name")

@@ -1,0 +1,9 @@
+"""Errors of the perception package: one line naming the file, key or frame at fault."""
+
+from __future__ import annotations
+
+from geometry import PalletpilotError
+
+
+class PerceptionError(PalletpilotError):
+    """Bad perception input: a frame bundle or geometry file that cannot be used as it is."""

@@ -1,0 +1,236 @@
+"""Known geometry perception relies on: the ego forks and the pallet type.
+
+Both are pydantic models in metres. Frames (ARCHITECTURE.md):
+
+- forklift frame: origin on the floor midway between the forks, x along the forks towards the tips,
+  y left, z up. A fork occupies x in [tip_x - length, tip_x], z in [h, h + thickness] at lift height h.
+- pallet frame: origin at the centre of the entry face on the pallet's underside, x into the pallet along
+  the pockets, y left, z up. The pallet occupies x in [0, length], y in [-width/2, width/2], z in [0, height].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from geometry import SE2, SE3
+from geometry.fileio import load_yaml_model
+from perception.errors import PerceptionError
+
+_MM = 5e-4  # tolerance (m) when checking that dimensions add up
+
+
+class ForkGeometry(BaseModel):
+    """The two forks of the ego forklift (metres, forklift frame; see the module docstring)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    length: float = Field(gt=0, description="length of one fork blade along x (m)")
+    width: float = Field(gt=0, description="width of one fork along y (m)")
+    thickness: float = Field(gt=0, description="blade thickness along z (m)")
+    inner_gap: float = Field(gt=0, description="gap between the inner sides of the two forks (m)")
+    tip_x: float = Field(description="x of the fork tips in the forklift frame (m)")
+
+    @property
+    def heel_x(self) -> float:
+        """x (m) of the fork heels (where the blades meet the carriage) in the forklift frame."""
+        return self.tip_x - self.length
+
+    @property
+    def centre_y(self) -> float:
+        """|y| (m) of each fork's centre line: the left fork is at +centre_y, the right at -centre_y."""
+        return 0.5 * self.inner_gap + 0.5 * self.width
+
+    @property
+    def centres_y(self) -> tuple[float, float]:
+        """y (m) of the (left, right) fork centre lines in the forklift frame."""
+        return (self.centre_y, -self.centre_y)
+
+    @property
+    def outer_width(self) -> float:
+        """Distance (m) between the outer sides of the two forks."""
+        return self.inner_gap + 2.0 * self.width
+
+    def boxes(self, lift_height: float = 0.0) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Axis-aligned (lo, hi) corners of the (left, right) fork blades in the forklift frame at lift height (m)."""
+        out = []
+        for cy in self.centres_y:
+            lo = np.array([self.heel_x, cy - 0.5 * self.width, lift_height])
+            hi = np.array([self.tip_x, cy + 0.5 * self.width, lift_height + self.thickness])
+            out.append((lo, hi))
+        return out
+
+
+def load_forks(path: str | Path) -> ForkGeometry:
+    """Load a fork geometry YAML file; a bad file raises `PerceptionError` (one line per problem)."""
+    return load_yaml_model(path, ForkGeometry, PerceptionError)
+
+
+PartKind = Literal["top_board", "cross_board", "block", "bottom_board"]
+
+
+@dataclass(frozen=True)
+class PalletPart:
+    """One solid part of a pallet: an axis-aligned box [lo, hi] (m) in the pallet frame."""
+
+    name: str
+    kind: PartKind
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def size(self) -> np.ndarray:
+        """Edge lengths (m) along x, y, z."""
+        return self.hi - self.lo
+
+
+class PalletType(BaseModel):
+    """A block pallet entered on its `width` side, built of boards and blocks (metres, pallet frame).
+
+    From the floor up: bottom boards (along x, under the block columns), blocks (3 rows along x by
+    the block columns along y), cross boards (along y, on top of each block row) and top deck boards
+    (along x). The pockets lie between the block columns, from the floor (open: no bottom board
+    crosses the entry side) up to the underside of the cross boards.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = "EUR/EPAL"
+    length: float = Field(1.2, gt=0, description="along x, the fork direction (m)")
+    width: float = Field(0.8, gt=0, description="along y, the entry face (m)")
+    height: float = Field(0.144, gt=0, description="total height (m); must equal the sum of the layers")
+    top_board_thickness: float = Field(0.022, gt=0)
+    top_board_widths: tuple[float, ...] = Field(
+        (0.145, 0.100, 0.145, 0.100, 0.145), description="deck boards along x, spread evenly over the width"
+    )
+    cross_board_thickness: float = Field(0.022, gt=0, description="boards along y on the blocks")
+    block_height: float = Field(0.078, gt=0)
+    block_length: float = Field(0.145, gt=0, description="block (and cross board) size along x")
+    block_columns: tuple[float, float, float] = Field(
+        (0.100, 0.145, 0.100), description="block widths along y, right to left; pockets between them"
+    )
+    bottom_board_thickness: float = Field(0.022, gt=0, description="boards along x under each block column")
+
+    @model_validator(mode="after")
+    def _dimensions_add_up(self) -> PalletType:
+        layers = self.bottom_board_thickness + self.block_height + self.cross_board_thickness + self.top_board_thickness
+        if abs(layers - self.height) > _MM:
+            raise ValueError(
+                f"layers add up to {layers * 1e3:.1f} mm (bottom + block + cross + top) but height is "
+                f"{self.height * 1e3:.1f} mm"
+            )
+        if sum(self.block_columns) >= self.width:
+            raise ValueError("block columns leave no room for pockets")
+        if sum(self.top_board_widths) > self.width + _MM:
+            raise ValueError("top deck boards are wider than the pallet")
+        if 3 * self.block_length >= self.length:
+            raise ValueError("three block rows do not fit in the pallet length")
+        return self
+
+    @classmethod
+    def eur(cls) -> PalletType:
+        """The EUR/EPAL 1 pallet: 1200 x 800 x 144 mm, entered on the 800 mm side.
+
+        EPAL parts: 5 top boards 22 mm (145/100/145/100/145 mm wide), 3 cross boards 145 x 22 mm,
+        9 blocks 78 mm high (145 mm along x; 100/145/100 mm along y), 3 bottom boards 22 mm:
+        22 + 78 + 22 + 22 = 144 mm. Pockets 227.5 mm wide, 100 mm high, open to the floor.
+        """
+        return cls()
+
+    # -- derived ------------------------------------------------------------------------
+    @property
+    def pocket_width(self) -> float:
+        """Width (m) of each of the two pockets along y."""
+        return 0.5 * (self.width - sum(self.block_columns))
+
+    @property
+    def pocket_height(self) -> float:
+        """Height (m) of the pockets: floor to the underside of the cross boards."""
+        return self.bottom_board_thickness + self.block_height
+
+    @property
+    def pocket_centres_y(self) -> tuple[float, float]:
+        """y (m) of the (left, right) pocket centres in the pallet frame."""
+        c = 0.5 * self.block_columns[1] + 0.5 * self.pocket_width
+        return (c, -c)
+
+    @property
+    def block_rows_x(self) -> tuple[float, float, float]:
+        """x (m) of the front edge of each block row (entry side, middle, back)."""
+        return (0.0, 0.5 * (self.length - self.block_length), self.length - self.block_length)
+
+    def column_bounds_y(self) -> list[tuple[float, float]]:
+        """(y_lo, y_hi) (m) of the three block columns, right to left."""
+        w = self.width
+        right, middle, left = self.block_columns
+        return [(-0.5 * w, -0.5 * w + right), (-0.5 * middle, 0.5 * middle), (0.5 * w - left, 0.5 * w)]
+
+    def parts(self) -> list[PalletPart]:
+        """Every board and block as an axis-aligned box in the pallet frame."""
+        parts: list[PalletPart] = []
+        z_block = self.bottom_board_thickness
+        z_cross = z_block + self.block_height
+        z_top = z_cross + self.cross_board_thickness
+        columns = self.column_bounds_y()
+        for j, (y0, y1) in enumerate(columns):
+            parts.append(
+                PalletPart(
+                    f"bottom_board_{j}", "bottom_board", np.array([0.0, y0, 0.0]), np.array([self.length, y1, z_block])
+                )
+            )
+        for i, x0 in enumerate(self.block_rows_x):
+            for j, (y0, y1) in enumerate(columns):
+                parts.append(
+                    PalletPart(
+                        f"block_{i}{j}",
+                        "block",
+                        np.array([x0, y0, z_block]),
+                        np.array([x0 + self.block_length, y1, z_cross]),
+                    )
+                )
+            parts.append(
+                PalletPart(
+                    f"cross_board_{i}",
+                    "cross_board",
+                    np.array([x0, -0.5 * self.width, z_cross]),
+                    np.array([x0 + self.block_length, 0.5 * self.width, z_top]),
+                )
+            )
+        n = len(self.top_board_widths)
+        gap = (self.width - sum(self.top_board_widths)) / (n - 1) if n > 1 else 0.0
+        y = -0.5 * self.width if n > 1 else -0.5 * self.top_board_widths[0]
+        for k, bw in enumerate(self.top_board_widths):
+            parts.append(
+                PalletPart(
+                    f"top_board_{k}",
+                    "top_board",
+                    np.array([0.0, y, z_top]),
+                    np.array([self.length, y + bw, self.height]),
+                )
+            )
+            y += bw + gap
+        return parts
+
+
+def load_pallet_type(path: str | Path) -> PalletType:
+    """Load a pallet type YAML file (fields of `PalletType`, missing ones default to EUR/EPAL)."""
+    return load_yaml_model(path, PalletType, PerceptionError)
+
+
+ENTRY_GAP_M = 0.05
+"""At a pallet node the pallet's entry face stands this far ahead of the fork heels (forklift x = 0),
+so the fork tips reach `tip_x - ENTRY_GAP_M` into the pallet."""
+
+
+def pallet_pose_at_node(T_world_node: SE2, height: float) -> SE3:
+    """`T_world_pallet` of a pallet placed exactly at a roadmap pallet node (node heading, load height m)."""
+    return T_world_node.to_se3(height) @ SE3.from_translation(ENTRY_GAP_M, 0.0, 0.0)
+
+
+def node_pose_for_pallet(T_world_pallet: SE3) -> SE2:
+    """The pallet node (forklift pose with the forks fully in) that serves a pallet at `T_world_pallet`."""
+    return (T_world_pallet @ SE3.from_translation(-ENTRY_GAP_M, 0.0, 0.0)).to_se2()

@@ -1,0 +1,155 @@
+"""Scenario files (YAML): which map, where the forklift starts, where the pallets really are, the
+camera mount, the noise and the seed. Paths are relative to the scenario file.
+
+```yaml
+map: warehouse.yaml
+forks: forks.yaml                 # fork geometry (ARCHITECTURE.md)
+vehicle: forklift.yaml            # optional: default is the map's own vehicle file
+seed: 7
+start: charger                    # node where the forklift starts, with the node's heading
+camera:
+  width: 640                      # 640x480 or 848x480
+  height: 480
+  mount:                          # true T_forklift_camera at lift height 0
+    x: -0.10                      # m, forklift frame
+    y: 0.0
+    z: 0.45
+    tilt_deg: 20                  # downward tilt of the optical axis below horizontal
+    pan_deg: 0.0                  # rotation about the forklift's z axis, positive to the left
+    roll_deg: 0.0                 # rotation about the optical axis
+  perturbation:                   # random mount change per run (vibration), 1-sigma
+    xyz_sigma: 0.0                # m
+    angle_sigma_deg: 0.0
+  noise:                          # sim.camera.CameraNoise; these are its defaults (D435-like, on)
+    depth_noise: true             # sigma(z) = z^2 * disparity_sigma_px / (f * baseline_m)
+    invalid_rate: 0.005           # share of depth pixels with no data
+    flying_pixel_rate: 0.5        # share of depth-edge pixels that mix depths
+    label_noise: false            # random dilation / erosion of class boundaries ...
+    label_noise_px: 2             # ... by up to this many pixels
+noise:
+  localization_xy_sigma: 0.0      # m
+  localization_yaw_sigma_deg: 0.0
+  slip_sigma: 0.0                 # relative, per control step
+pallets:                          # placed at roadmap pallet nodes plus the misplacement
+  - {node: rack_b3, dx: 0.10, dy: -0.15, dyaw_deg: 5, loaded: true}   # dx, dy in the node's frame (m)
+clutter:
+  - {kind: person, x: 12.0, y: 3.0, yaw_deg: 0}
+  - {kind: box, x: 8.0, y: -2.0, yaw_deg: 20, size: [0.6, 0.4, 0.5]}
+```
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from geometry import SE3, PalletpilotError
+from geometry.fileio import load_yaml_model
+from sim.camera import CameraNoise, camera_mount_pose
+
+
+class SimError(PalletpilotError):
+    """A bad scenario or an impossible simulator request; the message names the file or object."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraMount(_Strict):
+    """Camera pose on the fork carriage at lift height 0, in forklift-frame terms."""
+
+    x: float = -0.10
+    y: float = 0.0
+    z: float = Field(0.45, gt=0.0)
+    tilt_deg: float = Field(20.0, ge=0.0, le=89.0)
+    pan_deg: float = 0.0
+    roll_deg: float = 0.0
+
+    def T_forklift_camera(self) -> SE3:
+        """The mount as `T_forklift_camera` (optical frame: x right, y down, z out of the lens).
+
+        Built as the camera looking along the forklift's x axis, then panned about z (left positive),
+        tilted down about the camera's right-pointing axis, and rolled about its optical axis
+        (`sim.camera.camera_mount_pose`).
+        """
+        return camera_mount_pose(
+            (self.x, self.y, self.z),
+            math.radians(self.tilt_deg),
+            math.radians(self.pan_deg),
+            math.radians(self.roll_deg),
+        )
+
+
+class MountPerturbation(_Strict):
+    """1-sigma random change of the mount per run."""
+
+    xyz_sigma: float = Field(0.0, ge=0.0)
+    angle_sigma_deg: float = Field(0.0, ge=0.0)
+
+
+class CameraSpec(_Strict):
+    """The simulated RGB-D camera."""
+
+    width: Literal[640, 848] = 640
+    height: Literal[480] = 480
+    mount: CameraMount = CameraMount()
+    perturbation: MountPerturbation = MountPerturbation()
+    noise: CameraNoise = CameraNoise()
+
+
+class NoiseSpec(_Strict):
+    """Localization and actuation noise (camera noise is `camera.noise`); off by default."""
+
+    localization_xy_sigma: float = Field(0.0, ge=0.0)
+    localization_yaw_sigma_deg: float = Field(0.0, ge=0.0)
+    slip_sigma: float = Field(0.0, ge=0.0)
+
+
+class PalletPlacement(_Strict):
+    """A pallet at a roadmap pallet node, misplaced by (dx, dy, dyaw) in the node's frame."""
+
+    node: str
+    dx: float = 0.0
+    dy: float = 0.0
+    dyaw_deg: float = 0.0
+    loaded: bool = False
+
+
+class ClutterSpec(_Strict):
+    """Something else on the floor: a person or a box (other-object)."""
+
+    kind: Literal["person", "box"]
+    x: float
+    y: float
+    yaw_deg: float = 0.0
+    size: tuple[float, float, float] = (0.6, 0.4, 0.5)
+
+
+class Scenario(_Strict):
+    """A whole scenario file; paths are resolved against the file's folder by `load_scenario`."""
+
+    map: str
+    forks: str = "forks.yaml"
+    vehicle: str | None = None
+    seed: int = 0
+    start: str
+    camera: CameraSpec = CameraSpec()
+    noise: NoiseSpec = NoiseSpec()
+    pallets: list[PalletPlacement] = []
+    clutter: list[ClutterSpec] = []
+    folder: Path = Field(Path("."), exclude=True)
+
+    def path(self, name: str) -> Path:
+        """A file named in the scenario, resolved against the scenario's folder."""
+        return self.folder / name
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario file; every problem raises `SimError` naming the file and the field."""
+    scenario = load_yaml_model(path, Scenario, SimError)
+    scenario.folder = Path(path).parent
+    return scenario

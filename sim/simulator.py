@@ -1,0 +1,386 @@
+"""The simulated warehouse: a scenario's map, pallets and clutter, the forklift, its camera and sensors.
+
+`Simulator` is what the executor drives in tests, demos and benchmarks. It offers what the robot
+offers (the vehicle and camera ports of ARCHITECTURE.md) plus the truth that only tests may read:
+
+- `localization()` -> `T_world_forklift` with the scenario's noise; `drive(speed, steering)`; `stop()`;
+  `set_fork_height(h)` and `fork_height`; `proximity_ranges()` -> (left, right) beam ranges (m);
+- `grab()` -> a `FrameBundle` rendered from the camera on the fork carriage (truth in `*_true` keys);
+- `step(dt)` advances simulated time: driving, lifting, pallets riding on the forks, collisions.
+
+Pickup physics: the forks and the carriage's load backrest are boxes; every step near a pallet they
+are tested against the pallet's boards and blocks (separating axes). A fork that meets a part while
+entering is a collision: it is recorded in `collisions`, the forklift stops and stays stopped. When
+both forks are at least half-way into the pockets and rise to the underside of the deck, the pallet
+rides on them; lowered onto the floor or a rack beam it stays there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from control.vehicle import VehicleParams, load_vehicle
+from geometry import SE2, SE3
+from perception.frames import FrameBundle
+from perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
+from roadmap import NodeType, Roadmap, load_map, map_vehicle_file
+from sim.camera import CameraModel, RaycastRenderer
+from sim.forklift import LocalizationNoise, SimForklift
+from sim.scenario import Scenario, SimError
+from sim.world import LabeledMesh, Rack, floor_mesh, forks_mesh, object_box_mesh, pallet_mesh, person_mesh, wall_mesh
+
+CONTROL_DT = 0.05
+"""Control period (s): the executor ticks at 20 Hz."""
+
+BEAM_MAX_RANGE_M = 4.0
+"""Range of the fork-tip proximity beams (m); farther hits read as `inf`."""
+
+CARGO_SIZE = (1.15, 0.78, 0.9)
+"""Cargo box on a loaded pallet (m, x y z)."""
+
+_BACKREST = ((-0.12, -0.40, 0.0), (0.0, 0.40, 1.2))  # load backrest box (m), forklift frame above lift height
+
+
+@dataclass
+class SimPallet:
+    """A pallet in the simulated world (poses in the world frame)."""
+
+    node: str
+    T_world_pallet: SE3
+    loaded: bool
+    carried: bool = False
+    T_forks_pallet: SE3 | None = field(default=None, repr=False)  # relative to the fork bottoms while carried
+
+
+@dataclass(frozen=True)
+class RackSupport:
+    """Beams a pallet can stand on: the pallet-node footprint of a rack bay and the beam-top height (m)."""
+
+    T_world_rack: SE3
+    rack: Rack
+    top_z: float
+
+    def supports(self, xy: np.ndarray) -> bool:
+        """True when world point `xy` lies over this rack bay."""
+        local = self.T_world_rack.inv().apply([xy[0], xy[1], 0.0])
+        half = 0.5 * self.rack.bay_width
+        return bool(-0.2 <= local[0] <= self.rack.depth + 0.2 and -half <= local[1] <= half)
+
+
+class Simulator:
+    """A running simulated warehouse for one scenario (deterministic for its seed)."""
+
+    def __init__(self, scenario: Scenario, seed: int | None = None, start: str | None = None) -> None:
+        self.scenario = scenario
+        self.seed = scenario.seed if seed is None else seed
+        self.rng = np.random.default_rng(self.seed)
+        self.roadmap: Roadmap = load_map(scenario.path(scenario.map))
+        vehicle_path = (
+            scenario.path(scenario.vehicle) if scenario.vehicle else map_vehicle_file(scenario.path(scenario.map))
+        )
+        if vehicle_path is None:
+            raise SimError(f"{scenario.folder}: the scenario names no vehicle file and its map has none")
+        self.vehicle: VehicleParams = load_vehicle(vehicle_path)
+        self.forks: ForkGeometry = load_forks(scenario.path(scenario.forks))
+        self.pallet_type = PalletType.eur()
+        self._pallet_parts = self.pallet_type.parts()
+        self._part_lo = np.array([p.lo for p in self._pallet_parts])
+        self._part_hi = np.array([p.hi for p in self._pallet_parts])
+
+        start_id = start or scenario.start
+        start_node = self.roadmap.node(start_id)
+        self.forklift = SimForklift(
+            self.vehicle,
+            start_node.pose,
+            np.random.default_rng(self.rng.integers(2**32)),
+            slip_sigma=scenario.noise.slip_sigma,
+        )
+        self.localization_noise = LocalizationNoise(
+            scenario.noise.localization_xy_sigma, math.radians(scenario.noise.localization_yaw_sigma_deg)
+        )
+        self._loc_rng = np.random.default_rng(self.rng.integers(2**32))
+        self._cam_rng = np.random.default_rng(self.rng.integers(2**32))
+        self.camera = CameraModel.d435(scenario.camera.width, scenario.camera.height)
+        self.T_forklift_camera_true = self._perturbed_mount()
+        self.time = 0.0
+        self.collisions: list[str] = []
+
+        self.pallets: list[SimPallet] = []
+        for placement in scenario.pallets:
+            node = self.roadmap.node(placement.node)
+            if node.type is not NodeType.PALLET:
+                raise SimError(f"{scenario.folder}: pallet placed at '{node.id}', a {node.type.value} node")
+            misplacement = SE2(placement.dx, placement.dy, math.radians(placement.dyaw_deg)).to_se3()
+            T_world_pallet = pallet_pose_at_node(node.pose, node.height) @ misplacement
+            self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded))
+        self._racks = self._build_racks()
+        self._fixed_mesh = self._build_fixed_mesh()
+        self._renderer: RaycastRenderer | None = None
+        self._beam_scene: o3d.t.geometry.RaycastingScene | None = None
+
+    # -- world ----------------------------------------------------------------------------
+    def _perturbed_mount(self) -> SE3:
+        mount = self.scenario.camera.mount.T_forklift_camera()
+        p = self.scenario.camera.perturbation
+        if p.xyz_sigma == 0.0 and p.angle_sigma_deg == 0.0:
+            return mount
+        d_xyz = self.rng.normal(0.0, p.xyz_sigma, 3)
+        d_rpy = np.radians(self.rng.normal(0.0, p.angle_sigma_deg, 3))
+        return SE3.from_translation(*d_xyz) @ mount @ SE3.from_xyz_rpy((0, 0, 0), d_rpy)
+
+    def _build_racks(self) -> list[RackSupport]:
+        racks = []
+        for node in self.roadmap.nodes():
+            if node.type in (NodeType.PALLET, NodeType.DROP) and node.height > 0.0:
+                rack = Rack(
+                    bays=1, bay_width=2.7, depth=1.1, height=node.height + 1.6, levels=(node.height,), slots_per_bay=1
+                )
+                # The rack bay sits so that a pallet placed exactly at the node overhangs the front beam.
+                T_world_floor_pallet = pallet_pose_at_node(node.pose, 0.0)
+                T_world_rack = T_world_floor_pallet @ SE3.from_translation(rack.pallet_overhang, 0.0, 0.0)
+                racks.append(RackSupport(T_world_rack, rack, node.height))
+        return racks
+
+    def _build_fixed_mesh(self) -> LabeledMesh:
+        xy = np.array([n.pose.xy for n in self.roadmap.nodes()])
+        lo, hi = xy.min(axis=0) - 6.0, xy.max(axis=0) + 6.0
+        corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
+        parts = [floor_mesh(lo[0], lo[1], hi[0], hi[1])]
+        parts += [wall_mesh(corners[k], corners[(k + 1) % 4]) for k in range(4)]
+        parts += [r.rack.mesh(r.T_world_rack) for r in self._racks]
+        for c in self.scenario.clutter:
+            pose = SE2(c.x, c.y, math.radians(c.yaw_deg))
+            parts.append(person_mesh(pose) if c.kind == "person" else object_box_mesh(pose, c.size))
+        return LabeledMesh.merge(parts)
+
+    def _pallet_mesh(self, p: SimPallet) -> LabeledMesh:
+        return pallet_mesh(p.T_world_pallet, self.pallet_type, cargo_size=CARGO_SIZE if p.loaded else None)
+
+    def _static_changed(self) -> None:
+        self._renderer = None
+        self._beam_scene = None
+
+    def _static_meshes(self) -> LabeledMesh:
+        return LabeledMesh.merge([self._fixed_mesh] + [self._pallet_mesh(p) for p in self.pallets if not p.carried])
+
+    # -- vehicle port ---------------------------------------------------------------------
+    @property
+    def true_pose(self) -> SE2:
+        """The forklift's true `T_world_forklift` (truth: tests and reports only)."""
+        return self.forklift.state.pose
+
+    def localization(self) -> SE2:
+        """`T_world_forklift` as localization reports it (with the scenario's noise)."""
+        return self.localization_noise.measure(self.true_pose, self._loc_rng)
+
+    def drive(self, speed: float, steering: float) -> None:
+        """Drive command: speed (m/s, negative in reverse) and steering angle (rad). Ignored after a collision."""
+        if self.collisions:
+            self.forklift.stop()
+            return
+        self.forklift.command(speed, steering)
+
+    def stop(self) -> None:
+        """Brake to a standstill."""
+        self.forklift.stop()
+
+    @property
+    def speed(self) -> float:
+        """Measured speed (m/s)."""
+        return self.forklift.state.v
+
+    @property
+    def steering(self) -> float:
+        """Measured steering angle (rad)."""
+        return self.forklift.state.steering
+
+    def set_fork_height(self, height: float) -> None:
+        """Fork height target (m, fork bottoms above the floor)."""
+        self.forklift.command_fork_height(height)
+
+    @property
+    def fork_height(self) -> float:
+        """Measured fork height (m)."""
+        return self.forklift.state.fork_height
+
+    @property
+    def T_world_forklift3(self) -> SE3:
+        """True forklift pose as SE3 (on the floor)."""
+        return self.true_pose.to_se3()
+
+    def proximity_ranges(self) -> tuple[float, float]:
+        """Ranges (m) of the (left, right) beams shot forward from the fork tips at mid-blade height.
+
+        A beam through a pallet pocket passes the whole pallet; a beam on a block stops at the entry
+        face. `inf` when nothing is within `BEAM_MAX_RANGE_M`.
+        """
+        if self._beam_scene is None:
+            self._beam_scene = o3d.t.geometry.RaycastingScene()
+            self._beam_scene.add_triangles(self._static_meshes().to_open3d())
+        T = self.T_world_forklift3
+        z = self.fork_height + 0.5 * self.forks.thickness
+        origins = T.apply(np.array([[self.forks.tip_x, y, z] for y in self.forks.centres_y]))
+        direction = T.apply_vectors([1.0, 0.0, 0.0])
+        rays = np.hstack([origins, np.tile(direction, (2, 1))]).astype(np.float32)
+        t = self._beam_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        ranges = [float(r) if r <= BEAM_MAX_RANGE_M else math.inf for r in t]
+        return ranges[0], ranges[1]
+
+    # -- camera port ----------------------------------------------------------------------
+    def T_world_camera_true(self) -> SE3:
+        """True camera pose: forklift pose, carriage lift, mount."""
+        return self.T_world_forklift3 @ SE3.from_translation(0, 0, self.fork_height) @ self.T_forklift_camera_true
+
+    def grab(self) -> FrameBundle:
+        """Render one RGB-D frame (depth, labels, RGB) from the carriage camera."""
+        if self._renderer is None:
+            self._renderer = RaycastRenderer(self._static_meshes())
+        dynamic = [forks_mesh(self.forks, self.fork_height, self.T_world_forklift3)]
+        dynamic += [self._pallet_mesh(p) for p in self.pallets if p.carried]
+        truth = {"T_forklift_camera_true": self.T_forklift_camera_true.matrix}
+        target = self.pallet_ahead()
+        if target is not None:
+            truth["T_forklift_pallet_true"] = (self.T_world_forklift3.inv() @ target.T_world_pallet).matrix
+        return self._renderer.render(
+            self.T_world_camera_true(),
+            self.camera,
+            self.scenario.camera.noise,
+            self._cam_rng,
+            dynamic=dynamic,
+            fork_height=self.fork_height,
+            truth=truth,
+        )
+
+    def pallet_ahead(self, max_range_m: float = 6.0) -> SimPallet | None:
+        """The nearest resting pallet in front of the forks (within 45 deg of the fork axis), if any."""
+        best, best_d = None, max_range_m
+        T_fw = self.T_world_forklift3.inv()
+        for p in self.pallets:
+            if p.carried:
+                continue
+            local = T_fw.apply(p.T_world_pallet.t)
+            d = math.hypot(local[0], local[1])
+            if local[0] > 0 and abs(math.atan2(local[1], local[0])) < math.radians(45) and d < best_d:
+                best, best_d = p, d
+        return best
+
+    # -- time -----------------------------------------------------------------------------
+    def step(self, dt: float = CONTROL_DT) -> None:
+        """Advance simulated time by `dt` (s): vehicle, mast, carried pallets, contacts."""
+        self.forklift.step(dt)
+        self.time += dt
+        self._update_pallets()
+
+    def _fork_boxes(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        h = self.fork_height
+        boxes = [
+            (name, lo, hi) for name, (lo, hi) in zip(("left fork", "right fork"), self.forks.boxes(h), strict=True)
+        ]
+        lo, hi = (np.array(v) for v in _BACKREST)
+        boxes.append(("load backrest", lo + np.array([0.0, 0.0, h]), hi + np.array([0.0, 0.0, h])))
+        return boxes
+
+    def _update_pallets(self) -> None:
+        T_wf = self.T_world_forklift3
+        changed = False
+        for p in self.pallets:
+            if p.carried:
+                assert p.T_forks_pallet is not None
+                p.T_world_pallet = T_wf @ SE3.from_translation(0, 0, self.fork_height) @ p.T_forks_pallet
+                support = self._support_z(p.T_world_pallet.t[:2])
+                if p.T_world_pallet.t[2] <= support + 1e-4:
+                    xyz = p.T_world_pallet.t.copy()
+                    xyz[2] = support
+                    p.T_world_pallet = SE3(p.T_world_pallet.rotation, xyz)
+                    p.carried, p.T_forks_pallet, changed = False, None, True
+                continue
+            if np.hypot(*(p.T_world_pallet.t[:2] - T_wf.t[:2])) > 3.5:
+                continue
+            if self._try_lift(p, T_wf):
+                changed = True
+                continue
+            hit = self._contact(p, T_wf)
+            if hit is not None and not self.collisions:
+                self.collisions.append(f"t={self.time:.2f} s: {hit} of the pallet at '{p.node}'")
+                self.forklift.stop()
+                self.forklift.state.v = 0.0  # blocked by the pallet
+        if changed:
+            self._static_changed()
+
+    def _support_z(self, xy: np.ndarray) -> float:
+        for r in self._racks:
+            if r.supports(xy):
+                return r.top_z
+        return 0.0
+
+    def _fork_in_pallet(self, p: SimPallet, T_wf: SE3) -> tuple[np.ndarray, np.ndarray]:
+        """Fork and backrest boxes as 2D corners (B, 4, 2) and z ranges (B, 2) in the pallet frame."""
+        T_pf = p.T_world_pallet.inv() @ T_wf
+        corners, z = [], []
+        for _, lo, hi in self._fork_boxes():
+            c = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], lo[2]], [lo[0], hi[1], lo[2]]])
+            pts = T_pf.apply(c)
+            corners.append(pts[:, :2])
+            z.append((pts[0, 2], pts[0, 2] + hi[2] - lo[2]))
+        return np.array(corners), np.array(z)
+
+    def _contact(self, p: SimPallet, T_wf: SE3, tol: float = 1e-3) -> str | None:
+        """The first (box, part) pair that overlaps by more than `tol` (m), or None."""
+        corners, z = self._fork_in_pallet(p, T_wf)
+        lo, hi = self._part_lo, self._part_hi
+        names = [b[0] for b in self._fork_boxes()]
+        for b in range(len(corners)):
+            z_overlap = (np.minimum(z[b, 1], hi[:, 2]) - np.maximum(z[b, 0], lo[:, 2])) > tol
+            if not z_overlap.any():
+                continue
+            c = corners[b]
+            ex, ey = c[1] - c[0], c[3] - c[0]
+            axes = [np.array([1.0, 0.0]), np.array([0.0, 1.0]), ex / np.linalg.norm(ex), ey / np.linalg.norm(ey)]
+            overlap = z_overlap.copy()
+            for ax in axes:
+                proj = c @ ax
+                part_corners = np.stack(
+                    [
+                        lo[:, 0] * ax[0] + lo[:, 1] * ax[1],
+                        hi[:, 0] * ax[0] + lo[:, 1] * ax[1],
+                        hi[:, 0] * ax[0] + hi[:, 1] * ax[1],
+                        lo[:, 0] * ax[0] + hi[:, 1] * ax[1],
+                    ],
+                    axis=1,
+                )
+                overlap &= (
+                    np.minimum(proj.max(), part_corners.max(axis=1)) - np.maximum(proj.min(), part_corners.min(axis=1))
+                ) > tol
+            if overlap.any():
+                return f"{names[b]} hit {self._pallet_parts[int(np.argmax(overlap))].name}"
+        return None
+
+    def _try_lift(self, p: SimPallet, T_wf: SE3) -> bool:
+        """Attach the pallet when both forks are deep in the pockets and touch the deck from below."""
+        corners, z = self._fork_in_pallet(p, T_wf)
+        pocket_top = self.pallet_type.pocket_height
+        forks_x, forks_y = corners[:2, :, 0], corners[:2, :, 1]
+        depth_in = np.minimum(forks_x.max(axis=1), self.pallet_type.length) - np.maximum(forks_x.min(axis=1), 0.0)
+        inside = (
+            np.all(depth_in >= 0.5 * self.pallet_type.length)
+            and np.all(np.abs(forks_y) <= 0.5 * self.pallet_type.width)
+            and np.all(z[:2, 1] >= pocket_top - 1e-3)
+            and np.all(z[:2, 0] < pocket_top)
+        )
+        if not inside:
+            return False
+        # Lifting only works when nothing but the deck underside is touched: test a hair lower.
+        lowered = T_wf @ SE3.from_translation(0.0, 0.0, -0.002 - (z[:2, 1].max() - pocket_top))
+        if self._contact(p, lowered) is not None:
+            return False
+        T_forks_world = (T_wf @ SE3.from_translation(0, 0, self.fork_height)).inv()
+        lift = SE3.from_translation(0.0, 0.0, self.forks.thickness - pocket_top)
+        T_forks_pallet = T_forks_world @ p.T_world_pallet
+        planar = T_forks_pallet.to_se2().to_se3()  # the pallet settles level on the forks
+        p.T_forks_pallet = lift @ planar
+        p.carried = True
+        return True

@@ -1,0 +1,184 @@
+"""The simulated warehouse: scenarios, proximity beams, pickup physics, collisions, frames."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from executor.cli import main
+from geometry import SE3
+from perception.frames import load_bundle
+from perception.specs import pallet_pose_at_node
+from sim.scenario import Scenario, SimError, load_scenario
+from sim.simulator import Simulator
+
+MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+
+
+def scenario(dy: float = 0.0, dyaw_deg: float = 0.0, node: str = "floor_b2", loaded: bool = False) -> Scenario:
+    sc = Scenario.model_validate(
+        {
+            "map": "warehouse.yaml",
+            "start": f"{node}_pre",
+            "camera": {
+                "noise": {
+                    "depth_noise": False,
+                    "label_noise": False,
+                    "rgb_sigma": 0.0,
+                    "lighting_variation": False,
+                    "invalid_rate": 0.0,
+                }
+            },
+            "pallets": [{"node": node, "dy": dy, "dyaw_deg": dyaw_deg, "loaded": loaded}],
+        }
+    )
+    sc.folder = MISSIONS
+    return sc
+
+
+def set_forks(sim: Simulator, height: float) -> None:
+    sim.set_fork_height(height)
+    for _ in range(400):
+        sim.step()
+        if abs(sim.fork_height - height) < 1e-9:
+            return
+    raise AssertionError("forks did not reach their height")
+
+
+def drive_straight(sim: Simulator, distance: float, speed: float = 0.3) -> None:
+    """Open loop: drive straight (negative distance: reverse) and brake to a stop."""
+    start = sim.true_pose
+    sign = 1.0 if distance > 0 else -1.0
+    braking = speed * speed / (2 * sim.vehicle.max_decel)
+    sim.drive(sign * speed, 0.0)
+    for _ in range(2000):
+        sim.step()
+        if sim.true_pose.distance_to(start) >= abs(distance) - braking or sim.collisions:
+            break
+    sim.stop()
+    while not sim.forklift.stopped:
+        sim.step()
+
+
+def pallet_height(sim: Simulator, node: str) -> float:
+    return sim.roadmap.node(node).height
+
+
+def test_aligned_pallet_beams_clear_then_lift_carry_and_set_down():
+    sim = Simulator(scenario())
+    set_forks(sim, 0.025)  # fork bottoms 25 mm up: the 50 mm blades sit mid-pocket (pocket 100 mm)
+    face = 2.5 + 0.05 - sim.forks.tip_x  # pre-pallet to pallet node 2.5 m, entry gap 5 cm
+    left, right = sim.proximity_ranges()
+    assert left > face + sim.pallet_type.length and right > face + sim.pallet_type.length
+    drive_straight(sim, 2.46)
+    assert sim.collisions == []
+    pallet = sim.pallets[0]
+    before = pallet.T_world_pallet
+    set_forks(sim, 0.15)
+    assert pallet.carried
+    assert pallet.T_world_pallet.t[2] == pytest.approx(0.15 + sim.forks.thickness - sim.pallet_type.pocket_height)
+    drive_straight(sim, -2.0)  # reverse out with the load
+    moved = before.inv() @ pallet.T_world_pallet
+    assert moved.t[0] == pytest.approx(-2.0, abs=0.05) and abs(moved.t[1]) < 1e-6
+    set_forks(sim, 0.0)  # set it down on the floor
+    assert not pallet.carried and pallet.T_world_pallet.t[2] == 0.0
+    assert sim.collisions == []
+
+
+def test_beams_on_blocks_stop_at_the_entry_face():
+    sim = Simulator(scenario(dy=0.13))  # both fork centre lines now point at block columns
+    set_forks(sim, 0.025)
+    face = 2.5 + 0.05 - sim.forks.tip_x
+    assert sim.proximity_ranges() == pytest.approx((face, face), abs=1e-3)
+
+
+def test_a_misaligned_entry_is_a_collision():
+    # 8 cm off: the thin beams on the fork centre lines still pass the (shifted) pockets, which are
+    # 113 mm wide on either side of them, but the forks have only 33.75 mm of clearance.
+    sim = Simulator(scenario(dy=0.08))
+    set_forks(sim, 0.025)
+    face = 2.5 + 0.05 - sim.forks.tip_x
+    assert min(sim.proximity_ranges()) > face + sim.pallet_type.length
+    drive_straight(sim, 2.46)
+    assert len(sim.collisions) == 1
+    assert "fork hit block_" in sim.collisions[0] and "'floor_b2'" in sim.collisions[0]
+    assert sim.forklift.stopped
+    sim.drive(0.5, 0.0)  # a blocked forklift does not move on
+    pose = sim.true_pose
+    for _ in range(20):
+        sim.step()
+    assert sim.true_pose.isclose(pose, atol=1e-9)
+
+
+def test_forks_too_low_hit_nothing_in_the_pocket_but_too_high_hit_the_deck():
+    sim = Simulator(scenario())
+    set_forks(sim, 0.08)  # blade top 0.13 m: above the 0.100 m pocket, into the cross boards
+    drive_straight(sim, 2.46)
+    assert sim.collisions and "cross_board" in sim.collisions[0]
+
+
+def test_rack_pallet_lifts_off_the_beams():
+    sim = Simulator(scenario(node="rack_a2", loaded=True))
+    h = pallet_height(sim, "rack_a2")
+    pallet = sim.pallets[0]
+    assert pallet.T_world_pallet.t[2] == pytest.approx(h)
+    set_forks(sim, h + 0.025)
+    drive_straight(sim, 2.46)
+    assert sim.collisions == []
+    set_forks(sim, h + 0.15)
+    assert pallet.carried
+    set_forks(sim, h + 0.02)  # lowering again puts it back on the beams, not on the floor
+    assert not pallet.carried and pallet.T_world_pallet.t[2] == pytest.approx(h)
+
+
+def test_frame_truth_matches_the_scenario():
+    sim = Simulator(scenario(dy=-0.1, dyaw_deg=5.0))
+    frame = sim.grab()
+    T_fp = SE3.from_matrix(frame.truth["T_forklift_pallet_true"])
+    node = sim.roadmap.node("floor_b2")
+    expected = (
+        sim.T_world_forklift3.inv()
+        @ pallet_pose_at_node(node.pose, 0.0)
+        @ SE3.from_xyz_rpy((0.0, -0.1, 0.0), (0.0, 0.0, math.radians(5.0)))
+    )
+    assert T_fp.isclose(expected, atol=1e-9, atol_rot=1e-9)
+    assert np.allclose(frame.truth["T_forklift_camera_true"], sim.scenario.camera.mount.T_forklift_camera().matrix)
+    # The pallet's pixels: pallet-empty label where its entry face projects.
+    K = frame.K
+    face_centre_top = (sim.T_world_camera_true().inv() @ sim.pallets[0].T_world_pallet).apply([0.0, 0.0, 0.13])
+    u, v = (K @ face_centre_top / face_centre_top[2])[:2]
+    assert frame.labels[round(v), round(u)] == 7
+
+
+def test_same_seed_same_run_and_mount_perturbation():
+    sc = load_scenario(MISSIONS / "scenario_floor.yaml")
+    a, b = Simulator(sc), Simulator(sc)
+    assert a.T_forklift_camera_true.isclose(b.T_forklift_camera_true)
+    assert not a.T_forklift_camera_true.isclose(sc.camera.mount.T_forklift_camera(), atol=1e-5)
+    assert np.array_equal(a.grab().depth, b.grab().depth, equal_nan=True)
+    assert not Simulator(sc, seed=8).T_forklift_camera_true.isclose(a.T_forklift_camera_true, atol=1e-6)
+
+
+def test_bad_scenarios_are_clear(tmp_path):
+    bad = tmp_path / "s.yaml"
+    bad.write_text("map: warehouse.yaml\nstart: charger\ncamera: {width: 1000}\n")
+    with pytest.raises(SimError, match=r"camera\.width"):
+        load_scenario(bad)
+    sc = scenario()
+    sc.pallets[0].node = "charger"
+    with pytest.raises(SimError, match="pallet placed at 'charger', a charging node"):
+        Simulator(sc)
+
+
+def test_cli_sim_render_writes_a_bundle(tmp_path, capsys):
+    out = tmp_path / "f.npz"
+    assert (
+        main(["sim", "render", str(MISSIONS / "scenario_rack.yaml"), "--out", str(out), "--fork-height", "1.03"]) == 0
+    )
+    frame = load_bundle(out)
+    assert frame.fork_height == pytest.approx(1.03) and frame.depth.shape == (480, 640)
+    assert {"T_forklift_camera_true", "T_forklift_pallet_true"} <= set(frame.truth)
+    assert (frame.labels == 8).sum() > 1000  # the loaded pallet is in view (pallet-full)
+    assert main(["sim", "render", str(tmp_path / "none.yaml"), "--out", str(out)]) == 2
+    assert "cannot read" in capsys.readouterr().err
