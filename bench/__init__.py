@@ -7,4 +7,5 @@ Public API: `BENCHMARKS`, the registry of name -> module path.
 BENCHMARKS: dict[str, str] = {
     "roadmap": "bench.roadmap",
     "sim": "bench.sim",
+    "mpc": "bench.mpc",
 }

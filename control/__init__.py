@@ -1,11 +1,37 @@
-"""Control: forklift kinematic model and vehicle limits; the MPC and pure-pursuit followers come later.
+"""Control: the forklift's kinematic model, vehicle limits, and the path followers.
 
 Public API:
 - `VehicleParams`, `load_vehicle(path)`: the vehicle file (`missions/forklift.yaml`), shared with `sim/`.
+- `KinematicModel`: state (x, y, yaw, steering), inputs (speed, steering rate); CasADi and numpy.
+- Path followers (non-blocking, for the 20 Hz tick): `start(path)`, `update(t, T_world_forklift,
+  speed, steering) -> DriveCommand(speed, steering, status)`, `stop()`; `FollowerStatus` running /
+  succeeded / failed; `FollowerConfig` (tolerances, failure and progress checks, speed profile):
+  - `MpcFollower(params, MpcConfig)`: CasADi multiple-shooting MPC (`control.mpc`);
+  - `PurePursuitFollower(params, PurePursuitConfig)`: regulated pure pursuit, the baseline.
 - `ControlError`.
 """
 
 from control.errors import ControlError
+from control.follower import DriveCommand, Follower, FollowerConfig, FollowerStatus, TrackingError
+from control.model import KinematicModel
+from control.mpc import MpcConfig, MpcFollower, MpcWeights
+from control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
 from control.vehicle import MastParams, VehicleParams, load_vehicle
 
-__all__ = ["ControlError", "MastParams", "VehicleParams", "load_vehicle"]
+__all__ = [
+    "ControlError",
+    "DriveCommand",
+    "Follower",
+    "FollowerConfig",
+    "FollowerStatus",
+    "KinematicModel",
+    "MastParams",
+    "MpcConfig",
+    "MpcFollower",
+    "MpcWeights",
+    "PurePursuitConfig",
+    "PurePursuitFollower",
+    "TrackingError",
+    "VehicleParams",
+    "load_vehicle",
+]

@@ -217,7 +217,8 @@ def perturb_labels(labels: np.ndarray, max_px: int, rng: np.random.Generator) ->
     out = labels.copy()
     if max_px <= 0:
         return out
-    for cls in rng.permutation(np.unique(labels)):
+    present = np.flatnonzero(np.bincount(labels.ravel(), minlength=256)).astype(np.uint8)  # np.unique, 4x faster
+    for cls in rng.permutation(present):
         radius = int(rng.integers(0, max_px + 1))
         grow = rng.random() < 0.5
         if radius == 0:

@@ -119,6 +119,7 @@ class Simulator:
             self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded))
         self._racks = self._build_racks()
         self._fixed_mesh = self._build_fixed_mesh()
+        self._forks_local = forks_mesh(self.forks, 0.0, SE3.identity())  # forklift frame, lift height 0
         self._renderer: RaycastRenderer | None = None
         self._beam_scene: o3d.t.geometry.RaycastingScene | None = None
 
@@ -239,7 +240,7 @@ class Simulator:
         """Render one RGB-D frame (depth, labels, RGB) from the carriage camera."""
         if self._renderer is None:
             self._renderer = RaycastRenderer(self._static_meshes())
-        dynamic = [forks_mesh(self.forks, self.fork_height, self.T_world_forklift3)]
+        dynamic = [self._forks_local.transformed(self.T_world_forklift3 @ SE3.from_translation(0, 0, self.fork_height))]
         dynamic += [self._pallet_mesh(p) for p in self.pallets if p.carried]
         truth = {"T_forklift_camera_true": self.T_forklift_camera_true.matrix}
         target = self.pallet_ahead()
