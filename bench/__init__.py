@@ -7,5 +7,6 @@ Public API: `BENCHMARKS`, the registry of name -> module path.
 BENCHMARKS: dict[str, str] = {
     "roadmap": "bench.roadmap",
     "sim": "bench.sim",
+    "calibration": "bench.calibration",
     "mpc": "bench.mpc",
 }
