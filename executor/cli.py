@@ -4,6 +4,8 @@ Commands (exit 0 on success, 2 on bad input with one line per problem on stderr,
 - `palletpilot map check MAP [--vehicle VEHICLE.yaml]`
 - `palletpilot map show MAP --out PNG [--route FROM TO]`
 - `palletpilot plan MAP FROM TO [--json]`
+- `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]`
+  (exit 0 success, 1 mission failed, 2 bad input); `palletpilot mission diagram TASK [--out FILE]`
 - `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]`
 - `palletpilot capture --out DIR [--count N] [--serial S]`, `palletpilot capture --recording FILE --out DIR`
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
@@ -126,6 +128,65 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run a mission in the simulated warehouse; exit 0 on success, 1 when the mission failed."""
+    import signal
+
+    from executor.app import run_simulated
+
+    progress = None if args.json or args.quiet else sys.stderr
+    report = args.report or "out/run"
+    run_holder: dict = {}
+
+    def pause(_sig: int, _frame: object) -> None:
+        if "runner" in run_holder:
+            run_holder["runner"].pause()
+
+    def resume(_sig: int, _frame: object) -> None:
+        if "runner" in run_holder:
+            run_holder["runner"].resume()
+
+    signal.signal(signal.SIGUSR1, pause)
+    signal.signal(signal.SIGUSR2, resume)
+    try:
+        result = run_simulated(
+            args.mission, args.scenario, seed=args.seed, report_dir=report, adapt=not args.no_adapt, progress=progress
+        )
+    except KeyboardInterrupt:
+        print("cancelled: the vehicle is stopped", file=sys.stderr)
+        return EXIT_FAILED
+    if args.json:
+        print(json.dumps(result.summary, indent=2))
+    else:
+        for task in result.summary["tasks"]:
+            why = f" ({task['reason']})" if task["reason"] else ""
+            print(f"{task['type']:9s} {task['node'] or '':14s} {task['result']}{why}, {task['attempts']} estimate(s)")
+        print(f"mission {'succeeded' if result.success else 'FAILED'}; report in {report}/")
+    if not result.success:
+        failed = next(t for t in result.runner.results if t.result != "succeeded")
+        print(
+            f"mission failed: task {failed.index} ({failed.type}): {failed.message}; vehicle stopped", file=sys.stderr
+        )
+    return EXIT_OK if result.success else EXIT_FAILED
+
+
+def cmd_mission_diagram(args: argparse.Namespace) -> int:
+    """Write a task type's state machine as a mermaid diagram."""
+    from executor.tasks import TASK_SPECS, mermaid
+
+    if args.task not in TASK_SPECS:
+        print(f"mission diagram: unknown task '{args.task}' (known: {', '.join(TASK_SPECS)})", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    text = mermaid(args.task)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        print(text)
+    return EXIT_OK
+
+
 def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:
     """Run one benchmark by name and print its figures."""
     from bench import BENCHMARKS
@@ -169,6 +230,23 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("goal", metavar="TO")
     plan.add_argument("--json", action="store_true", help="print nodes, edges and length_m as JSON")
     plan.set_defaults(func=cmd_plan)
+
+    run = sub.add_parser("run", help="run a mission (in the simulated warehouse)")
+    run.add_argument("mission")
+    run.add_argument("--scenario", help="scenario file (default: the default simulated warehouse)")
+    run.add_argument("--seed", type=int, help="override the scenario's seed")
+    run.add_argument("--report", help="report folder (default out/run)")
+    run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
+    run.add_argument("--json", action="store_true", help="print the summary as JSON")
+    run.add_argument("--quiet", action="store_true", help="no live progress")
+    run.set_defaults(func=cmd_run)
+
+    mission = sub.add_parser("mission", help="mission tools")
+    mission_sub = mission.add_subparsers(dest="mission_command", required=True)
+    diagram = mission_sub.add_parser("diagram", help="draw a task type's state machine (mermaid)")
+    diagram.add_argument("task", help="pickup, pickup_no_adapt, delivery, move, charge, wait")
+    diagram.add_argument("--out", help="file to write (default: stdout)")
+    diagram.set_defaults(func=cmd_mission_diagram)
 
     cal = sub.add_parser("calibrate", help="calibrate the camera pose from the forks and the floor")
     cal.add_argument("frames", nargs="+", metavar="FRAME.npz", help="frame bundles with labels")

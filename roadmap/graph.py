@@ -218,10 +218,10 @@ class Roadmap:
         return [d["edge"] for _, _, d in self._graph.edges(data=True)]
 
     def pre_pallet_of(self, pallet_id: str) -> str:
-        """The pre-pallet node serving a pallet node."""
+        """The pre-pallet node serving a pallet (or drop) node."""
         node = self.node(pallet_id)
-        if node.type is not NodeType.PALLET or node.pre_pallet is None:
-            raise RoadmapError(f"{self.source}: node '{pallet_id}' is not a pallet node with a pre-pallet node")
+        if node.type not in (NodeType.PALLET, NodeType.DROP) or node.pre_pallet is None:
+            raise RoadmapError(f"{self.source}: node '{pallet_id}' is not a pallet or drop node with a pre-pallet node")
         return node.pre_pallet
 
     # -- validation ---------------------------------------------------------------------
@@ -237,7 +237,7 @@ class Roadmap:
         for edge in self.edges():
             problems += self._check_edge(edge, max_curvature)
         for node in self.nodes():
-            if node.type is NodeType.PALLET:
+            if node.type is NodeType.PALLET or (node.type is NodeType.DROP and node.pre_pallet is not None):
                 problems += self._check_pallet(node)
         return problems
 
@@ -270,29 +270,30 @@ class Roadmap:
 
     def _check_pallet(self, node: Node) -> list[str]:
         pre = node.pre_pallet
+        kind = node.type.value
         if pre is None:
-            return [f"pallet node '{node.id}': no pre_pallet node named"]
+            return [f"{kind} node '{node.id}': no pre_pallet node named"]
         if pre not in self._graph:
-            return [f"pallet node '{node.id}': pre-pallet node '{pre}' does not exist"]
+            return [f"{kind} node '{node.id}': pre-pallet node '{pre}' does not exist"]
         if self.node(pre).type is not NodeType.PRE_PALLET:
-            return [f"pallet node '{node.id}': '{pre}' is a {self.node(pre).type.value} node, not pre_pallet"]
+            return [f"{kind} node '{node.id}': '{pre}' is a {self.node(pre).type.value} node, not pre_pallet"]
         problems = []
         if not self._graph.has_edge(pre, node.id):
-            problems.append(f"pallet node '{node.id}': no straight edge from its pre-pallet node '{pre}'")
+            problems.append(f"{kind} node '{node.id}': no straight edge from its pre-pallet node '{pre}'")
         else:
             entry = self.edge(pre, node.id)
             if not isinstance(entry.curve, Line) or entry.direction is not Direction.FORWARD:
                 problems.append(
-                    f"pallet node '{node.id}': edge '{entry.name}' must be a forward line, "
+                    f"{kind} node '{node.id}': edge '{entry.name}' must be a forward line, "
                     f"is a {entry.direction.value} {entry.curve.kind}"
                 )
             elif node.has_heading and abs(angle_diff(entry.yaw_end, node.pose.yaw)) > TANGENT_TOLERANCE_RAD:
                 problems.append(
-                    f"pallet node '{node.id}': the forks would arrive heading {math.degrees(entry.yaw_end):.1f} deg, "
+                    f"{kind} node '{node.id}': the forks would arrive heading {math.degrees(entry.yaw_end):.1f} deg, "
                     f"the node says {math.degrees(node.pose.yaw):.1f} deg"
                 )
         if not self._graph.has_edge(node.id, pre):
-            problems.append(f"pallet node '{node.id}': no reverse edge back to its pre-pallet node '{pre}'")
+            problems.append(f"{kind} node '{node.id}': no reverse edge back to its pre-pallet node '{pre}'")
         elif self.edge(node.id, pre).direction is not Direction.REVERSE:
-            problems.append(f"pallet node '{node.id}': edge '{node.id}->{pre}' must be driven in reverse")
+            problems.append(f"{kind} node '{node.id}': edge '{node.id}->{pre}' must be driven in reverse")
         return problems

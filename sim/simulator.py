@@ -208,6 +208,14 @@ class Simulator:
         """Measured fork height (m)."""
         return self.forklift.state.fork_height
 
+    def load_detected(self) -> bool:
+        """True when a pallet rides on the forks (the mast's pressure sensor)."""
+        return any(p.carried for p in self.pallets)
+
+    def faults(self) -> list[str]:
+        """Safety faults: the contacts of the forks or backrest with a pallet."""
+        return [f"collision: {c}" for c in self.collisions]
+
     @property
     def T_world_forklift3(self) -> SE3:
         """True forklift pose as SE3 (on the floor)."""

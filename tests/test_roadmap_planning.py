@@ -165,8 +165,8 @@ def test_reference_path_is_continuous_and_labelled(warehouse):
         assert np.allclose(np.hypot(np.diff(seg.x), np.diff(seg.y)), ds, rtol=1e-3, atol=1e-4)  # s is arc length
         assert np.max(np.abs(angle_diff(seg.heading[1:], seg.heading[:-1]))) < 0.05
     fwd = path.segments[-1]
-    # On the arc b3 -> rack_b3_pre (radius 1.5 m, turning left) the curvature is +1/1.5.
-    assert np.isclose(fwd.curvature, 1 / 1.5).sum() > 10
+    # On the arc b3 -> rack_b3_pre (radius 2.5 m, turning left) the curvature is +1/2.5.
+    assert np.isclose(fwd.curvature, 1 / 2.5).sum() > 10
     assert fwd.speed_limit[-1] == pytest.approx(0.3)  # the pallet entry's limit
 
 

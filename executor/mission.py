@@ -1,0 +1,159 @@
+"""Mission files (YAML) and their validation against the map, before anything moves.
+
+```yaml
+name: pick up a misplaced pallet and deliver it
+map: warehouse.yaml               # relative to this file
+tasks:
+  - {type: pickup, node: floor_b2}              # height (m): default the pallet node's height
+  - {type: delivery, node: drop, height: 0.0}   # put the pallet down at a drop (or pallet) node
+  - {type: move, node: a_top}
+  - {type: charge, node: charger, minutes: 5}   # or until_level: 0.9 (needs a battery reading)
+  - {type: wait, seconds: 10}
+```
+
+Validation reports every problem, one line each, naming the task: unknown node, a node of the wrong
+type for the task, a height outside the mast's range, and a node that cannot be reached from where
+the previous task leaves the forklift.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from control.vehicle import VehicleParams
+from geometry import PalletpilotError
+from geometry.fileio import load_yaml_model
+from roadmap import NodeType, Planner, Roadmap, RoadmapError
+
+
+class MissionError(PalletpilotError):
+    """A mission that cannot be run as written; one line per problem."""
+
+
+class _Task(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PickupTask(_Task):
+    """Pick up the pallet at a pallet node (adapting to where it really is)."""
+
+    type: Literal["pickup"]
+    node: str
+    height: float | None = Field(None, description="pallet height (m); default: the node's")
+
+
+class DeliveryTask(_Task):
+    """Put the carried pallet down at a drop or pallet node."""
+
+    type: Literal["delivery"]
+    node: str
+    height: float | None = Field(None, description="drop height (m); default: the node's")
+
+
+class MoveTask(_Task):
+    """Drive to a node."""
+
+    type: Literal["move"]
+    node: str
+
+
+class ChargeTask(_Task):
+    """Drive to a charging node and charge for some minutes or until a battery level."""
+
+    type: Literal["charge"]
+    node: str
+    minutes: float | None = Field(None, gt=0)
+    until_level: float | None = Field(None, gt=0, le=1)
+
+    @model_validator(mode="after")
+    def _one_end(self) -> ChargeTask:
+        if (self.minutes is None) == (self.until_level is None):
+            raise ValueError("give either minutes or until_level")
+        return self
+
+
+class WaitTask(_Task):
+    """Stand still for some seconds."""
+
+    type: Literal["wait"]
+    seconds: float = Field(gt=0)
+
+
+Task = Annotated[PickupTask | DeliveryTask | MoveTask | ChargeTask | WaitTask, Field(discriminator="type")]
+
+NODE_TYPES: dict[str, tuple[NodeType, ...]] = {
+    "pickup": (NodeType.PALLET,),
+    "delivery": (NodeType.DROP, NodeType.PALLET),
+    "charge": (NodeType.CHARGING,),
+}
+
+
+class Mission(BaseModel):
+    """A mission file: a name, a map and the tasks in order."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "mission"
+    map: str
+    tasks: list[Task] = Field(min_length=1)
+    folder: Path = Field(Path("."), exclude=True)
+
+    @property
+    def map_path(self) -> Path:
+        """The map file, resolved against the mission's folder."""
+        return self.folder / self.map
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read a mission file; schema problems raise `MissionError` (one line each, with the field)."""
+    mission = load_yaml_model(path, Mission, MissionError)
+    mission.folder = Path(path).parent
+    return mission
+
+
+def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams, start: str, where: str) -> None:
+    """Check every task against the map and the vehicle; raise `MissionError` listing all problems.
+
+    Reachability is checked along the chain: from `start`, each task's node must be reachable from
+    where the previous task left the forklift (a pickup or delivery ends at its pre-pallet node).
+    """
+    problems: list[str] = []
+    planner = Planner(roadmap)
+    here = start
+    mast = vehicle.mast
+    for i, task in enumerate(mission.tasks):
+        label = f"{where}: tasks[{i}] ({task.type}"
+        node_id = getattr(task, "node", None)
+        if node_id is None:
+            continue
+        label += f" {node_id})"
+        if node_id not in roadmap:
+            problems.append(f"{label}: unknown node '{node_id}'")
+            continue
+        node = roadmap.node(node_id)
+        allowed = NODE_TYPES.get(task.type)
+        if allowed and node.type not in allowed:
+            want = " or ".join(t.value for t in allowed)
+            problems.append(f"{label}: node '{node_id}' is a {node.type.value} node, a {task.type} needs a {want} node")
+            continue
+        height = getattr(task, "height", None)
+        if height is not None and not (mast.min_height <= height <= mast.max_height - 0.15):
+            problems.append(
+                f"{label}: height {height:.2f} m is outside the mast's range "
+                f"{mast.min_height:.2f}..{mast.max_height - 0.15:.2f} m (lift margin 0.15 m)"
+            )
+        target = node.pre_pallet if task.type in ("pickup", "delivery") and node.pre_pallet else node_id
+        if task.type in ("pickup", "delivery") and not node.pre_pallet:
+            problems.append(f"{label}: node '{node_id}' names no pre-pallet node to approach it from")
+            continue
+        try:
+            planner.plan(here, target)
+        except RoadmapError:
+            problems.append(f"{label}: node '{target}' cannot be reached from '{here}'")
+            continue
+        here = target
+    if problems:
+        raise MissionError(problems[0] if len(problems) == 1 else f"{where}: {len(problems)} problems", problems)

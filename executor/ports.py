@@ -1,0 +1,105 @@
+"""The executor's ports to the world: the vehicle and perception (ARCHITECTURE.md).
+
+`sim.simulator.Simulator` implements `VehiclePort` and `CameraSource` directly; a robot adapter
+implements them for the real forklift. `LocalPerception` is the in-process `PerceptionService`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+from geometry import SE2
+from perception.calibration import Calibrator, Method
+from perception.calibration_io import Calibration
+from perception.frames import FrameBundle
+from perception.pallet import PalletEstimate, estimate_pallet
+from perception.specs import ForkGeometry, PalletType
+
+
+@runtime_checkable
+class VehiclePort(Protocol):
+    """What the executor needs from a forklift (SI units, world frame)."""
+
+    def localization(self) -> SE2:
+        """`T_world_forklift` from localization."""
+
+    def drive(self, speed: float, steering: float) -> None:
+        """Drive command: speed (m/s, negative in reverse), steering angle (rad)."""
+
+    def stop(self) -> None:
+        """Brake to a standstill."""
+
+    @property
+    def speed(self) -> float:
+        """Measured speed (m/s)."""
+
+    @property
+    def steering(self) -> float:
+        """Measured steering angle (rad)."""
+
+    def set_fork_height(self, height: float) -> None:
+        """Fork height target (m, fork bottoms above the floor)."""
+
+    @property
+    def fork_height(self) -> float:
+        """Measured fork height (m)."""
+
+    def proximity_ranges(self) -> tuple[float, float]:
+        """Ranges (m) of the left and right fork-tip beams (`inf`: nothing within range)."""
+
+    def load_detected(self) -> bool:
+        """True when the forks carry a load (mast pressure sensor)."""
+
+    def faults(self) -> list[str]:
+        """Active safety faults (contact, bumper); empty when all is well."""
+
+
+class PerceptionService(Protocol):
+    """Calibration and pallet estimation, in process or behind a service boundary."""
+
+    def calibrate(self, frames: Sequence[FrameBundle]) -> Calibration:
+        """`T_forklift_camera` from frames of the forks and the floor (raises `CalibrationError`)."""
+
+    def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
+        """The pallet's pose (raises `PalletNotFound`)."""
+
+    @property
+    def last_good(self) -> Calibration | None:
+        """The last successful calibration."""
+
+
+class LocalPerception:
+    """`PerceptionService` in this process: labels from the frame or a segmenter, then the geometry."""
+
+    def __init__(
+        self,
+        forks: ForkGeometry,
+        pallet: PalletType | None = None,
+        method: Method = "model",
+        segmenter: object | None = None,
+    ) -> None:
+        self.forks = forks
+        self.pallet = pallet or PalletType.eur()
+        self.calibrator = Calibrator(forks, method)
+        self.segmenter = segmenter
+
+    def _labelled(self, frame: FrameBundle) -> FrameBundle:
+        if frame.labels is not None or self.segmenter is None:
+            return frame
+        from perception.segmentation import ensure_labels
+
+        return ensure_labels(frame, self.segmenter)
+
+    def calibrate(self, frames: Sequence[FrameBundle]) -> Calibration:
+        """Calibrate; on failure the last good calibration stays in `last_good`."""
+        return self.calibrator.calibrate([self._labelled(f) for f in frames])
+
+    def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
+        """Estimate the pallet's pose in the forklift and world frames."""
+        return estimate_pallet(self._labelled(frame), calibration, self.pallet, T_world_forklift=T_world_forklift)
+
+    @property
+    def last_good(self) -> Calibration | None:
+        """The last successful calibration."""
+        return self.calibrator.last_good

@@ -1,0 +1,109 @@
+"""Mission reports: `report.json`, `trajectory.png` and `events.jsonl` in a report folder.
+
+`report.json`: the mission, `success`, and per task its type, node, result, reason, attempts, start and
+end time (simulated s), its states with their times and outcomes, the calibrations, the pallet
+estimates against the node, the temporary nodes, and (in the simulator) the true pallet poses.
+`trajectory.png`: the map, the planned paths, the driven trajectory (localization), the true and the
+estimated pallet poses.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from geometry import SE2
+from perception.specs import PalletType
+from roadmap import Roadmap
+from roadmap.draw import draw_roadmap
+
+
+def summary(success: bool, results: list) -> dict[str, Any]:
+    """The `--json` summary: `success` and `tasks` (type, node, result, reason, attempts)."""
+    return {"success": success, "tasks": [r.summary() for r in results]}
+
+
+def write_report(
+    folder: Path,
+    mission_name: str,
+    success: bool,
+    results: list,
+    roadmap: Roadmap,
+    trajectory: list[tuple[float, float, float, float]],
+    planned_paths: list[list[tuple[float, float]]],
+    truth_pallets: list[SE2] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """Write `report.json` and `trajectory.png` into `folder`; returns the JSON path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "mission": mission_name,
+        "success": success,
+        **(extra or {}),
+        "tasks": [
+            {
+                **r.summary(),
+                "message": r.message,
+                "start_s": round(r.start_s, 3),
+                "end_s": round(r.end_s, 3),
+                "duration_s": round(r.end_s - r.start_s, 3),
+                "states": r.states,
+                **r.record,
+            }
+            for r in results
+        ],
+    }
+    path = folder / "report.json"
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+    _plot(folder / "trajectory.png", mission_name, success, results, roadmap, trajectory, planned_paths, truth_pallets)
+    return path
+
+
+def _pallet_outline(pose: SE2, pallet: PalletType) -> np.ndarray:
+    corners = np.array([[0, -0.5], [1, -0.5], [1, 0.5], [0, 0.5], [0, -0.5]]) * [pallet.length, pallet.width]
+    return pose.apply(corners)
+
+
+def _plot(
+    out: Path,
+    name: str,
+    success: bool,
+    results: list,
+    roadmap: Roadmap,
+    trajectory: list[tuple[float, float, float, float]],
+    planned: list[list[tuple[float, float]]],
+    truth: list[SE2] | None,
+) -> None:
+    fig, ax = plt.subplots(figsize=(11, 9), dpi=110)
+    draw_roadmap(roadmap, ax, labels=True)
+    for i, path in enumerate(planned):
+        xy = np.array(path)
+        ax.plot(xy[:, 0], xy[:, 1], "-", color="#1f77b4", lw=1.2, alpha=0.6, label="planned" if i == 0 else None)
+    if trajectory:
+        tr = np.array(trajectory)
+        ax.plot(tr[:, 1], tr[:, 2], "-", color="#d62728", lw=1.6, label="driven")
+    pallet = PalletType.eur()
+    for i, pose in enumerate(truth or []):
+        xy = _pallet_outline(pose, pallet)
+        ax.plot(xy[:, 0], xy[:, 1], "-", color="#2ca02c", lw=1.5, label="pallet (true)" if i == 0 else None)
+    first = True
+    for r in results:
+        for est in r.record.get("estimates", []):
+            w = est["T_world_pallet"]
+            xy = _pallet_outline(SE2(w["x_m"], w["y_m"], math.radians(w["yaw_deg"])), pallet)
+            ax.plot(xy[:, 0], xy[:, 1], "--", color="#ff7f0e", lw=1.2, label="pallet (estimated)" if first else None)
+            first = False
+    ax.legend(loc="upper right", fontsize=8)
+    verdict = "succeeded" if success else "failed: " + ", ".join(f"{r.type} {r.reason}" for r in results if r.reason)
+    ax.set_title(f"{name}: {verdict}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)

@@ -1,0 +1,189 @@
+"""Simulated missions end to end: the adaptive pickup, failures that end cleanly, invalid missions."""
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from executor.app import run_simulated
+from executor.cli import main
+from executor.mission import MissionError
+from sim.scenario import Scenario
+
+MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+
+
+def mission_file(tmp_path: Path, tasks: list[dict], name: str = "test") -> Path:
+    path = tmp_path / "mission.yaml"
+    path.write_text(yaml.safe_dump({"name": name, "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks}))
+    return path
+
+
+def scenario(start: str, pallets: list[dict], seed: int = 3, noise: bool = True) -> Scenario:
+    camera = {
+        "mount": {"tilt_deg": 22.0, "pan_deg": 0.8, "roll_deg": -0.5},
+        "perturbation": {"xyz_sigma": 0.002, "angle_sigma_deg": 0.2},
+    }
+    if not noise:
+        camera["noise"] = {"depth_noise": False, "label_noise": False, "rgb_sigma": 0.0, "lighting_variation": False}
+    sc = Scenario.model_validate(
+        {
+            "map": "warehouse.yaml",
+            "start": start,
+            "seed": seed,
+            "camera": camera,
+            "noise": {"localization_xy_sigma": 0.003, "localization_yaw_sigma_deg": 0.05},
+            "pallets": pallets,
+        }
+    )
+    sc.folder = MISSIONS
+    return sc
+
+
+def run(tmp_path, tasks, sc, **kw):
+    return run_simulated(mission_file(tmp_path, tasks), scenario=sc, report_dir=tmp_path / "report", **kw)
+
+
+def test_aligned_pallet_is_picked_without_replanning(tmp_path):
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], scenario("b1", [{"node": "floor_b2"}]))
+    task = r.summary["tasks"][0]
+    assert r.success and task["result"] == "succeeded" and task["attempts"] == 1
+    assert r.sim.pallets[0].carried and r.sim.collisions == []
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert "temporary_nodes" not in report["tasks"][0]
+    assert (tmp_path / "report" / "trajectory.png").stat().st_size > 10_000
+    assert (tmp_path / "report" / "events.jsonl").read_text().count("state_start") >= 8
+
+
+def test_misplaced_pallet_is_picked_after_replanning(tmp_path):
+    sc = scenario("b1", [{"node": "floor_b2", "dx": 0.12, "dy": -0.2, "dyaw_deg": 6.0}])
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
+    task = r.summary["tasks"][0]
+    assert r.success, r.runner.results[0].message
+    assert task["attempts"] >= 2  # estimated off, re-planned, estimated aligned
+    assert r.sim.pallets[0].carried and r.sim.collisions == []
+    assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())  # temporary nodes removed
+    report = json.loads((tmp_path / "report" / "report.json").read_text())["tasks"][0]
+    assert report["estimates"][0]["aligned"] is False and report["estimates"][-1]["aligned"] is True
+    assert report["temporary_nodes"][0]["pallet"] == "floor_b2~1"
+
+
+def test_missing_pallet_fails_cleanly(tmp_path):
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], scenario("b1", []))
+    task = r.summary["tasks"][0]
+    assert not r.success and task["result"] == "failed" and task["reason"] == "pallet_not_found"
+    assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == []
+
+
+def test_pallet_too_far_off_fails_cleanly(tmp_path):
+    # Seen and estimated, but turned 45 deg towards the aisle: no curve the forklift can drive
+    # leads from the node before the pre-pallet node to the pallet's new pre-pallet node.
+    sc = scenario("b1", [{"node": "floor_b2", "dx": 0.3, "dy": -0.6, "dyaw_deg": -45.0}])
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
+    task = r.summary["tasks"][0]
+    assert not r.success and task["reason"] == "no_feasible_approach", task
+    assert "no feasible curve" in r.runner.results[0].message
+    assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == [] and not r.sim.pallets[0].carried
+    assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
+
+
+def test_rack_pickup_at_height(tmp_path):
+    sc = scenario("a1", [{"node": "rack_a2", "dx": -0.03, "dy": 0.1, "dyaw_deg": -3.0, "loaded": True}])
+    r = run(tmp_path, [{"type": "pickup", "node": "rack_a2"}], sc)
+    assert r.success, r.runner.results[0].message
+    pallet = r.sim.pallets[0]
+    assert pallet.carried and pallet.T_world_pallet.t[2] > 1.0  # lifted off the 1.0 m beam
+    assert r.sim.collisions == []
+
+
+def test_pickup_then_delivery(tmp_path):
+    sc = scenario("b1", [{"node": "floor_b2", "dy": 0.1, "dyaw_deg": -4.0}])
+    tasks = [{"type": "pickup", "node": "floor_b2"}, {"type": "delivery", "node": "drop"}]
+    r = run(tmp_path, tasks, sc)
+    assert r.success, [t.message for t in r.runner.results]
+    pallet = r.sim.pallets[0]
+    drop = r.runner.ctx.roadmap.node("drop").pose
+    assert not pallet.carried and pallet.T_world_pallet.t[2] == 0.0
+    assert pallet.T_world_pallet.to_se2().distance_to(drop) < 0.2  # set down at the drop node
+    assert r.runner.ctx.at_node == "drop_pre"
+
+
+def test_no_adapt_baseline_refuses_a_misplaced_pallet(tmp_path):
+    sc = scenario("b1", [{"node": "floor_b2", "dy": 0.15, "dyaw_deg": 5.0}])
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc, adapt=False)
+    task = r.summary["tasks"][0]
+    assert not r.success and task["reason"] in {"safety_check_failed", "collision"}
+    assert abs(r.sim.speed) < 1e-3
+
+
+@pytest.mark.parametrize(
+    "task, message",
+    [
+        ({"type": "pickup", "node": "nowhere"}, "unknown node 'nowhere'"),
+        ({"type": "pickup", "node": "b2"}, "node 'b2' is a waypoint node, a pickup needs a pallet node"),
+        ({"type": "charge", "node": "drop", "minutes": 1}, "a charge needs a charging node"),
+        ({"type": "delivery", "node": "drop", "height": 3.5}, "height 3.50 m is outside the mast's range"),
+        ({"type": "move", "node": "island"}, "node 'island' cannot be reached"),
+        ({"type": "pickup"}, "tasks[0].pickup.node: Field required"),
+    ],
+)
+def test_invalid_missions_are_rejected(tmp_path, capsys, task, message):
+    doc = yaml.safe_load((MISSIONS / "warehouse.yaml").read_text())
+    doc["nodes"].append({"id": "island", "type": "waypoint", "x": 50, "y": 50})
+    (tmp_path / "warehouse.yaml").write_text(yaml.safe_dump(doc))
+    (tmp_path / "forklift.yaml").write_text((MISSIONS / "forklift.yaml").read_text())
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump({"map": "warehouse.yaml", "tasks": [task]}))
+    sc = scenario("b1", [])
+    with pytest.raises(MissionError) as info:
+        run_simulated(path, scenario=sc)
+    assert any(message in line for line in info.value.problems), info.value.problems
+    assert main(["run", str(path), "--scenario", str(MISSIONS / "scenario_floor.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_cancel_stops_the_vehicle(tmp_path):
+    from executor.app import default_scenario
+    from executor.mission import load_mission
+
+    path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
+    sc = default_scenario(load_mission(path))
+    # Cancel once the forklift has started to move: hook the simulator's step.
+    from sim.simulator import Simulator
+
+    original = Simulator.step
+    holder = {}
+
+    def step(self, dt=0.05):
+        original(self, dt)
+        runner = holder.get("runner")
+        if self.time > 5.0 and runner is not None:
+            runner.cancel()
+
+    import executor.runner as runner_mod
+
+    original_init = runner_mod.Runner.__init__
+
+    def init(self, *a, **k):
+        original_init(self, *a, **k)
+        holder["runner"] = self
+
+    Simulator.step = step
+    runner_mod.Runner.__init__ = init
+    try:
+        r = run_simulated(path, scenario=sc)
+    finally:
+        Simulator.step = original
+        runner_mod.Runner.__init__ = original_init
+    assert not r.success and r.summary["tasks"][0]["reason"] == "cancelled"
+    assert r.runner.clock.now() < 10.0
+
+
+def test_mission_diagram(tmp_path):
+    out = tmp_path / "pickup.mmd"
+    assert main(["mission", "diagram", "pickup", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "stateDiagram-v2" in text and "estimate_pallet --> back_off: misaligned" in text
+    assert main(["mission", "diagram", "dance"]) == 2
