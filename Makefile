@@ -12,9 +12,8 @@ SYSTEM_LIBS := libusb-1.0-0 libgomp1
 
 demo: setup
 	$(BIN)/palletpilot map check missions/warehouse.yaml
-	$(BIN)/palletpilot plan missions/warehouse.yaml charger rack_b3 --json
-	$(BIN)/palletpilot map show missions/warehouse.yaml --route charger rack_b3 --out $(OUT)/route.png
-	@echo "demo: route drawn to $(OUT)/route.png"
+	$(BIN)/palletpilot run missions/pickup_delivery.yaml --scenario missions/scenario_demo.yaml --report $(OUT)/demo
+	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl)"
 
 test: setup
 	$(BIN)/python -m pytest -q

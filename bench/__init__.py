@@ -9,4 +9,5 @@ BENCHMARKS: dict[str, str] = {
     "sim": "bench.sim",
     "calibration": "bench.calibration",
     "mpc": "bench.mpc",
+    "missions": "bench.missions",
 }

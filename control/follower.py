@@ -291,6 +291,14 @@ class Follower(ABC):
         """Index of the segment being followed."""
         return self._index
 
+    @property
+    def distance_to_go(self) -> float:
+        """Path length (m) still ahead: the rest of this segment and all the following ones."""
+        if not self._tracks or self._index >= len(self._tracks):
+            return 0.0
+        rest = self._tracks[self._index].length - self._s  # progress `_s` runs from 0 along the segment
+        return max(rest, 0.0) + sum(t.length for t in self._tracks[self._index + 1 :])
+
     def start(self, path: ReferencePath) -> None:
         """Begin following `path` (world frame) from its first segment."""
         if not path.segments:

@@ -70,6 +70,7 @@ class Limits:
     tip_rms: float = 0.010
     ransac_threshold: float = 0.008
     depth_edge_jump: float = 0.03  # relative depth jump in a 3x3 neighbourhood that marks a depth edge
+    max_floor_depth: float = 3.0  # floor points farther than this (z-depth, m) are too noisy to use
 
 
 LIMITS = Limits()
@@ -111,7 +112,9 @@ def _frame_data(frame: FrameBundle, where: str, limits: Limits) -> _FrameData:
     if not valid.any():
         raise CalibrationError(f"{where}: no valid depth in the frame")
     edge = _depth_edges(frame.depth, limits.depth_edge_jump)
-    floor = deproject(frame.depth, frame.K, class_mask(frame.labels, [SemanticClass.DRIVABLE]) & ~edge)
+    # Near floor only: stereo depth noise grows with z^2 (about 0.1 m at 5 m for a D435).
+    near = frame.depth < limits.max_floor_depth
+    floor = deproject(frame.depth, frame.K, class_mask(frame.labels, [SemanticClass.DRIVABLE]) & ~edge & near)
     forks = deproject(frame.depth, frame.K, class_mask(frame.labels, [SemanticClass.FORKS]) & ~edge)
     if len(floor) < limits.min_floor_points:
         raise CalibrationError(

@@ -1,0 +1,138 @@
+"""`palletpilot bench missions`: seeded pickups of misplaced pallets, adaptive against the paper's original.
+
+Each run: one pallet at a random pallet node of the example map (floor or rack, empty or loaded),
+misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal and +-10 deg, D435 noise with label
+noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5) with a random per-run perturbation,
+localization noise; the forklift starts at the aisle node before the pallet's pre-pallet node and runs
+a single pickup. The same scenarios are run adaptively and with `--no-adapt` (no camera, only the
+proximity safety check). Success: the pallet is on the forks and nothing collided.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of this benchmark."""
+    parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes")
+    parser.add_argument("--modes", default="adaptive,no_adapt")
+
+
+def _scenarios(runs: int, seed: int) -> list[dict]:
+    from roadmap import NodeType, load_map
+
+    roadmap = load_map(MISSIONS / "warehouse.yaml")
+    pallets = sorted(n.id for n in roadmap.nodes() if n.type is NodeType.PALLET)
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(runs):
+        node = str(rng.choice(pallets))
+        pre = roadmap.pre_pallet_of(node)
+        before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
+        out.append(
+            {
+                "index": i,
+                "node": node,
+                "start": before,
+                "scenario": {
+                    "map": "warehouse.yaml",
+                    "start": before,
+                    "seed": int(rng.integers(2**31)),
+                    "camera": {
+                        "mount": {
+                            "x": -0.10,
+                            "y": float(rng.uniform(-0.02, 0.02)),
+                            "z": float(rng.uniform(0.40, 0.50)),
+                            "tilt_deg": float(rng.uniform(18.0, 26.0)),
+                            "pan_deg": float(rng.uniform(-2.0, 2.0)),
+                            "roll_deg": float(rng.uniform(-1.5, 1.5)),
+                        },
+                        "perturbation": {"xyz_sigma": 0.003, "angle_sigma_deg": 0.3},
+                        "noise": {"label_noise": True},
+                    },
+                    "noise": {"localization_xy_sigma": 0.005, "localization_yaw_sigma_deg": 0.1, "slip_sigma": 0.005},
+                    "pallets": [
+                        {
+                            "node": node,
+                            "dx": float(rng.uniform(-0.30, 0.30)),
+                            "dy": float(rng.uniform(-0.30, 0.30)),
+                            "dyaw_deg": float(rng.uniform(-10.0, 10.0)),
+                            "loaded": bool(rng.random() < 0.5),
+                        }
+                    ],
+                },
+            }
+        )
+    return out
+
+
+def _one(job: tuple[dict, bool]) -> dict:
+    """Run one scenario in one mode; returns the outcome (in a worker process)."""
+    from executor.app import run_simulated
+    from sim.scenario import Scenario
+
+    spec, adapt = job
+    sc = Scenario.model_validate(spec["scenario"])
+    sc.folder = MISSIONS
+    with tempfile.TemporaryDirectory() as tmp:
+        mission = Path(tmp) / "m.yaml"
+        mission.write_text(
+            yaml.safe_dump(
+                {"map": str(MISSIONS / "warehouse.yaml"), "tasks": [{"type": "pickup", "node": spec["node"]}]}
+            )
+        )
+        t0 = time.perf_counter()
+        run = run_simulated(mission, scenario=sc, adapt=adapt)
+        wall = time.perf_counter() - t0
+    task = run.runner.results[0]
+    lifted = bool(run.sim.pallets and run.sim.pallets[0].carried)
+    success = task.result == "succeeded" and lifted and not run.sim.collisions
+    reason = None if success else (task.reason or ("collision" if run.sim.collisions else "pallet_not_lifted"))
+    return {
+        "index": spec["index"],
+        "adapt": adapt,
+        "node": spec["node"],
+        "success": success,
+        "reason": reason,
+        "replans": max(task.attempts - 1, 0),
+        "task_s": task.end_s - task.start_s,
+        "wall_s": wall,
+    }
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Run every scenario in each mode and return the figures."""
+    specs = _scenarios(args.runs, args.seed)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    jobs = [(s, m == "adaptive") for m in modes for s in specs]
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as pool:
+            outcomes = list(pool.map(_one, jobs))
+    else:
+        outcomes = [_one(j) for j in jobs]
+    result: dict = {"runs": args.runs, "seed": args.seed}
+    for mode in modes:
+        mine = [o for o in outcomes if o["adapt"] == (mode == "adaptive")]
+        ok = [o for o in mine if o["success"]]
+        result[mode] = {
+            "success_rate": round(len(ok) / len(mine), 4),
+            "mean_replans": round(float(np.mean([o["replans"] for o in mine])), 3),
+            "mean_task_s": round(float(np.mean([o["task_s"] for o in mine])), 2),
+            "mean_wall_s": round(float(np.mean([o["wall_s"] for o in mine])), 2),
+            "failures": dict(collections.Counter(o["reason"] for o in mine if not o["success"])),
+            "failed_runs": [o["index"] for o in mine if not o["success"]][:20],
+        }
+    return result
