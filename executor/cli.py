@@ -102,6 +102,16 @@ def cmd_sim_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _labelled(frames: list, model: str | None) -> list:
+    """Frames with labels: those without are segmented by the ONNX model (the shipped one by default)."""
+    if all(f.labels is not None for f in frames):
+        return frames
+    from perception.segmentation import DEFAULT_MODEL, OnnxSegmenter, ensure_labels
+
+    segmenter = OnnxSegmenter(model or DEFAULT_MODEL)
+    return [ensure_labels(f, segmenter) for f in frames]
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate T_forklift_camera from frame bundles of the forks and the floor."""
     from perception.calibration import calibrate
@@ -109,7 +119,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from perception.specs import load_forks
 
     forks = load_forks(args.forks)
-    frames = [load_bundle(p) for p in args.frames]
+    frames = _labelled([load_bundle(p) for p in args.frames], args.model)
     calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
     doc = calibration.to_json()
     if args.out:
@@ -254,6 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--method", choices=("model", "paper"), default="model")
     cal.add_argument("--json", action="store_true", help="print the calibration as JSON")
     cal.add_argument("--out", help="also write the JSON to this file (for estimate-pallet --calibration)")
+    cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
     cal.set_defaults(func=cmd_calibrate)
 
     sim = sub.add_parser("sim", help="the simulated warehouse")

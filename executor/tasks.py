@@ -8,8 +8,8 @@ with a reason code, and the runner stops the vehicle.
 
 The adaptive Pickup follows ARCHITECTURE.md: drive to the pre-pallet node, calibrate, raise the forks,
 estimate the pallet; when misaligned, back off to the node before the pre-pallet node, add temporary
-pallet and pre-pallet nodes from the estimate joined by a feasible curve, approach the new pre-pallet
-node and repeat (at most `max_attempts` estimates); then the proximity safety check, enter, lift,
+pallet and pre-pallet nodes from the estimate joined by a feasible curve (forks lowered to travel
+height first), approach the new pre-pallet node and repeat (at most `max_attempts` estimates); then the proximity safety check, enter, lift,
 reverse out, return to the roadmap and remove the temporary nodes. `--no-adapt` runs the paper's
 original Pickup: no camera, only the safety check.
 """
@@ -67,6 +67,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
             "calibrate",
             "raise_forks",
             "estimate_pallet",
+            "lower_forks",
             "back_off",
             "replan",
             "approach",
@@ -82,7 +83,8 @@ TASK_SPECS: dict[str, TaskSpec] = {
             ("done", "calibrate", "raise_forks"),
             ("done", "raise_forks", "estimate_pallet"),
             ("aligned", "estimate_pallet", "safety_check"),
-            ("misaligned", "estimate_pallet", "back_off"),
+            ("misaligned", "estimate_pallet", "lower_forks"),
+            ("done", "lower_forks", "back_off"),
             ("done", "back_off", "replan"),
             ("done", "replan", "approach"),
             ("done", "approach", "calibrate"),
@@ -542,6 +544,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
                 {
                     "calibrate": CalibrateCamera,
                     "estimate_pallet": EstimatePallet,
+                    "lower_forks": lambda: SetForks(lambda ctx: s.travel_height),
                     "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
                     "replan": Replan,
                     "approach": lambda: FollowRoute(pre, via=_edge_route(before, pre)),

@@ -65,7 +65,7 @@ class Limits:
     min_floor_points: int = 2000
     min_fork_points: int = 1500
     min_tip_edges: int = 8
-    floor_rms: float = 0.010
+    floor_rms: float = 0.010  # plus the stereo noise expected at the floor's median depth (raised forks)
     fork_rms: float = 0.008
     tip_rms: float = 0.010
     ransac_threshold: float = 0.008
@@ -377,6 +377,8 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
         inl = np.abs(r) < 0.02
         return float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.inf
 
+    floor_depth = float(np.median(np.concatenate([f[:, 2] for f in floors])))
+    floor_limit = limits.floor_rms + 2.0 * float(_depth_tolerance(np.array(floor_depth))) / 3.0
     quality = {
         "floor_rms_m": robust_rms(floor_res),
         "fork_rms_m": robust_rms(fork_res),
@@ -386,7 +388,7 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
         "floor_points": int(sum(len(f) for f in floors)),
         **stats,
     }
-    checks = (("floor_rms_m", limits.floor_rms), ("fork_rms_m", limits.fork_rms), ("tip_rms_m", limits.tip_rms))
+    checks = (("floor_rms_m", floor_limit), ("fork_rms_m", limits.fork_rms), ("tip_rms_m", limits.tip_rms))
     for key, limit in checks:
         if not quality[key] <= limit:
             raise CalibrationError(

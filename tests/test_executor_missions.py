@@ -185,5 +185,5 @@ def test_mission_diagram(tmp_path):
     out = tmp_path / "pickup.mmd"
     assert main(["mission", "diagram", "pickup", "--out", str(out)]) == 0
     text = out.read_text()
-    assert "stateDiagram-v2" in text and "estimate_pallet --> back_off: misaligned" in text
+    assert "stateDiagram-v2" in text and "estimate_pallet --> lower_forks: misaligned" in text
     assert main(["mission", "diagram", "dance"]) == 2
