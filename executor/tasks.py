@@ -7,10 +7,10 @@ every control tick returning `None` (running) or a trigger name (`done`, `aligne
 with a reason code, and the runner stops the vehicle.
 
 The adaptive Pickup follows ARCHITECTURE.md: drive to the pre-pallet node, calibrate, raise the forks,
-estimate the pallet; when misaligned, back off to the node before the pre-pallet node, add temporary
-pallet and pre-pallet nodes from the estimate joined by a feasible curve (forks lowered to travel
-height first), approach the new pre-pallet node and repeat (at most `max_attempts` estimates); then the proximity safety check, enter, lift,
-reverse out, return to the roadmap and remove the temporary nodes. `--no-adapt` runs the paper's
+estimate the pallet; when misaligned, lower the forks, back off to the node before the pre-pallet
+node, add temporary pallet and pre-pallet nodes from the estimate joined by a feasible curve, approach
+the new pre-pallet node and repeat (at most `max_attempts` estimates); then the proximity safety
+check, enter, lift, reverse out, return to the roadmap and remove the temporary nodes. `--no-adapt` runs the paper's
 original Pickup: no camera, only the safety check.
 """
 
