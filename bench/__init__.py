@@ -8,6 +8,7 @@ BENCHMARKS: dict[str, str] = {
     "roadmap": "bench.roadmap",
     "sim": "bench.sim",
     "calibration": "bench.calibration",
+    "pallet": "bench.pallet",
     "mpc": "bench.mpc",
     "missions": "bench.missions",
 }

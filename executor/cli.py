@@ -283,7 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=cmd_bench)
 
     # Commands defined next to the code they drive.
-    importlib.import_module("executor.cli_capture").add_parsers(sub)
+    for module in ("executor.cli_capture", "executor.cli_pallet"):
+        importlib.import_module(module).add_parsers(sub)
     return parser
 
 

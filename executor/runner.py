@@ -20,8 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from transitions import Machine
-
 from control.follower import Follower
 from control.mpc import MpcFollower
 from control.vehicle import VehicleParams
@@ -29,13 +27,13 @@ from executor.mission import Mission
 from executor.ports import PerceptionService, VehiclePort
 from executor.tasks import (
     CANCELLED,
-    TASK_SPECS,
     TIMEOUT,
     Behaviour,
     Context,
     Settings,
     TaskFailed,
     behaviours,
+    build_machine,
 )
 from perception.frames import FrameBundle
 from perception.specs import ForkGeometry, PalletType
@@ -87,12 +85,6 @@ class TaskResult:
             "reason": self.reason,
             "attempts": self.attempts,
         }
-
-
-class _Model:
-    """The object the `transitions` machine drives; its `state` names the current state."""
-
-    state: str
 
 
 class Runner:
@@ -204,7 +196,6 @@ class Runner:
     def _run_task(self, index: int, task: Any) -> TaskResult:
         ctx = self.ctx
         kind = task.type if task.type != "pickup" or self.settings.adapt else "pickup_no_adapt"
-        spec = TASK_SPECS[kind]
         table = behaviours(kind, self.settings)
         node = getattr(task, "node", None)
         result = TaskResult(index, task.type, node, start_s=self.clock.now())
@@ -212,14 +203,7 @@ class Runner:
         ctx.record = result.record
         if node is not None and task.type in ("pickup", "delivery"):
             ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
-        model = _Model()
-        Machine(
-            model=model,
-            states=list(spec.states),
-            transitions=[{"trigger": t, "source": s, "dest": d} for t, s, d in spec.transitions],
-            initial=spec.states[0],
-            auto_transitions=False,
-        )
+        model = build_machine(kind)
         self._log("task_start", index=index, type=task.type, node=node)
         with contextlib.ExitStack() as stack:
             ctx.overlay = stack.enter_context(ctx.roadmap.overlay())  # temporary nodes vanish with the task

@@ -25,13 +25,14 @@ from control.errors import ControlError
 from control.follower import Follower, FollowerStatus
 from control.vehicle import VehicleParams
 from executor.ports import PerceptionService, VehiclePort
-from geometry import SE2, SE3, PalletpilotError
+from geometry import SE2, PalletpilotError
+from perception.alignment import AlignmentTolerances, check_alignment
 from perception.calibration import CalibrationError
 from perception.calibration_io import Calibration
 from perception.errors import PerceptionError
 from perception.frames import FrameBundle
 from perception.pallet import PalletEstimate
-from perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, node_pose_for_pallet, pallet_pose_at_node
+from perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, node_pose_for_pallet
 from roadmap import Direction, Edge, Node, NodeType, Overlay, Planner, Roadmap, RoadmapError, connect, reference_path
 from roadmap.planner import Route
 
@@ -128,26 +129,34 @@ TASK_SPECS: dict[str, TaskSpec] = {
 }
 
 
-def mermaid(task: str) -> str:
-    """The state diagram of a task type as mermaid text (drawn by `transitions`)."""
+class MachineModel:
+    """The object a task's `transitions` machine drives; `state` names the current state."""
+
+    state: str
+
+
+def build_machine(task: str, graph: bool = False) -> MachineModel:
+    """A fresh machine of a task type from `TASK_SPECS`; with `graph`, one that can draw itself (mermaid)."""
+    from transitions import Machine
     from transitions.extensions import GraphMachine
 
     spec = TASK_SPECS[task]
-
-    class _Model:
-        pass
-
-    model = _Model()
-    GraphMachine(
+    model = MachineModel()
+    kwargs = {"graph_engine": "mermaid", "title": f"{task} task"} if graph else {}
+    (GraphMachine if graph else Machine)(
         model=model,
         states=list(spec.states),
         transitions=[{"trigger": t, "source": s, "dest": d} for t, s, d in spec.transitions],
         initial=spec.states[0],
-        graph_engine="mermaid",
         auto_transitions=False,
-        title=f"{task} task",
+        **kwargs,
     )
-    return model.get_graph().draw(None)  # type: ignore[attr-defined]
+    return model
+
+
+def mermaid(task: str) -> str:
+    """The state diagram of a task type as mermaid text (drawn by `transitions`)."""
+    return build_machine(task, graph=True).get_graph().draw(None)  # type: ignore[attr-defined]
 
 
 # -- what the behaviours share -----------------------------------------------------------------------
@@ -166,9 +175,11 @@ class Settings:
     """Executor parameters (m, s, rad)."""
 
     max_attempts: int = 3  # pallet estimates per pickup (the first one and the re-plans)
-    lateral_tolerance: float = 0.020  # forks 160 mm in pockets 227.5 mm: 33.75 mm clearance, minus margins
-    longitudinal_tolerance: float = 0.040  # the backrest stops 50 mm before the entry face at the node
-    yaw_tolerance: float = math.radians(1.0)  # 1.1 m of fork in the pocket: 33 mm clearance is 1.7 deg
+    # Alignment tolerances come from the fork and pocket geometry (`perception.alignment`), less these
+    # margins for localization and control errors.
+    lateral_margin: float = 0.010
+    longitudinal_margin: float = 0.010
+    yaw_limit_deg: float = 2.0
     fork_clearance: float = 0.025  # fork bottoms above the pallet's underside when entering
     lift_delta: float = 0.08  # lift above the entry height to carry
     travel_height: float = 0.0  # fork height while driving empty
@@ -345,28 +356,6 @@ class CalibrateCamera(Behaviour):
         raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {errors[-1]}")
 
 
-@dataclass(frozen=True)
-class Alignment:
-    """Differences of the estimated pallet against the expected one, in the expected pallet's frame."""
-
-    lateral: float
-    longitudinal: float
-    yaw: float
-    aligned: bool
-
-
-def check_alignment(expected: SE3, estimated: SE3, settings: Settings) -> Alignment:
-    """Compare an estimated `T_world_pallet` with the expected one (both world frame) against the tolerances."""
-    d = expected.inv() @ estimated
-    planar = d.to_se2()
-    ok = (
-        abs(planar.y) <= settings.lateral_tolerance
-        and abs(planar.x) <= settings.longitudinal_tolerance
-        and abs(planar.yaw) <= settings.yaw_tolerance
-    )
-    return Alignment(planar.y, planar.x, planar.yaw, ok)
-
-
 class EstimatePallet(Behaviour):
     """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned."""
 
@@ -383,10 +372,17 @@ class EstimatePallet(Behaviour):
         assert est.T_world_pallet is not None
         ctx.estimate = est
         node = ctx.roadmap.node(ctx.pallet_node)
-        expected = pallet_pose_at_node(node.pose, node.height)
-        al = check_alignment(expected, est.T_world_pallet, ctx.settings)
+        tolerances = AlignmentTolerances.from_geometry(
+            ctx.forks,
+            ctx.pallet_type,
+            lateral_margin_m=ctx.settings.lateral_margin,
+            longitudinal_margin_m=ctx.settings.longitudinal_margin,
+            yaw_limit_deg=ctx.settings.yaw_limit_deg,
+        )
+        al = check_alignment(est.T_world_pallet, node, tolerances)
         world = est.T_world_pallet.to_se2()
         entry = {
+            "problems": list(al.problems),
             "attempt": ctx.attempts,
             "against_node": ctx.pallet_node,
             "T_world_pallet": {
@@ -394,9 +390,9 @@ class EstimatePallet(Behaviour):
                 "y_m": round(world.y, 4),
                 "yaw_deg": round(math.degrees(world.yaw), 3),
             },
-            "lateral_mm": round(al.lateral * 1e3, 1),
-            "longitudinal_mm": round(al.longitudinal * 1e3, 1),
-            "yaw_deg": round(math.degrees(al.yaw), 3),
+            "lateral_mm": round(al.lateral_m * 1e3, 1),
+            "longitudinal_mm": round(al.longitudinal_m * 1e3, 1),
+            "yaw_deg": round(math.degrees(al.yaw_rad), 3),
             "aligned": al.aligned,
         }
         ctx.record.setdefault("estimates", []).append(entry)

@@ -1,0 +1,80 @@
+"""`palletpilot estimate-pallet FRAME.npz --calibration CALIB.json [--pallet eur|FILE.yaml] [--json]`.
+
+Estimates the pose of the pallet in front of the forks from one frame bundle (`perception.pallet`).
+Without labels in the bundle the shipped segmentation model labels its RGB
+(`perception.segmentation`); without that module, labels are required. Errors are
+`PerceptionError`s (`PalletNotFound` when there is no pallet): the main CLI prints them as one line
+and exits 2.
+
+Registered by `executor.cli` through `add_parsers(subparsers)`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+
+from perception.errors import PerceptionError
+from perception.frames import FrameBundle
+from perception.specs import PalletType, load_pallet_type
+
+
+def _pallet_type(name: str) -> PalletType:
+    if name.lower() in ("eur", "epal", "eur/epal"):
+        return PalletType.eur()
+    return load_pallet_type(name)
+
+
+def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
+    """The frame itself when it has labels, else labelled by the shipped segmentation model."""
+    if frame.labels is not None:
+        return frame
+    try:
+        seg = importlib.import_module("perception.segmentation")
+    except ImportError:
+        raise PerceptionError(
+            f"{where}: labels: missing, and no segmentation model is available (labels are required)"
+        ) from None
+    if frame.rgb is None:
+        raise PerceptionError(f"{where}: labels: missing, and there is no rgb to segment")
+    return seg.ensure_labels(frame, seg.OnnxSegmenter(seg.DEFAULT_MODEL))
+
+
+def cmd_estimate_pallet(args: argparse.Namespace) -> int:
+    """Estimate the pallet pose in one frame bundle and print it."""
+    from perception.calibration_io import load_calibration
+    from perception.frames import load_bundle
+    from perception.pallet import PalletNotFound, estimate_pallet
+
+    frame = _with_labels(load_bundle(args.frame), args.frame)
+    calibration = load_calibration(args.calibration)
+    try:
+        estimate = estimate_pallet(frame, calibration, _pallet_type(args.pallet))
+    except PalletNotFound as exc:  # name the frame in the one-line message
+        raise PalletNotFound(exc.reason, exc.detail, where=args.frame) from None
+    doc = estimate.to_json()
+    if args.json:
+        print(json.dumps(doc, indent=2))
+    else:
+        s = estimate.spread
+        print(
+            f"pallet at x {doc['x_m']:.3f} m, y {doc['y_m']:+.3f} m, z {doc['z_m']:.3f} m, "
+            f"yaw {doc['yaw_deg']:+.2f} deg "
+            f"(1-sigma {s.x_m * 1e3:.1f} mm, {s.y_m * 1e3:.1f} mm, {math.degrees(s.yaw_rad):.2f} deg; "
+            f"{estimate.n_face_points} face pixels)"
+        )
+    return 0
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    """Register `estimate-pallet` on the `palletpilot` sub-command parser."""
+    p = subparsers.add_parser("estimate-pallet", help="estimate the pallet pose in a frame bundle (.npz)")
+    p.add_argument("frame", metavar="FRAME.npz")
+    p.add_argument(
+        "--calibration", required=True, metavar="CALIB.json", help="output of `palletpilot calibrate --json`"
+    )
+    p.add_argument("--pallet", default="eur", help="pallet type: eur (default) or a pallet type YAML file")
+    p.add_argument("--json", action="store_true", help="print T_forklift_pallet, x_m, y_m, z_m, yaw_deg, spread")
+    p.set_defaults(func=cmd_estimate_pallet)

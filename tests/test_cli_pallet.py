@@ -1,0 +1,77 @@
+"""`palletpilot estimate-pallet` (executor.cli_pallet), driven through its own sub-parser."""
+
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from bench.pallet import FrameSpec, render
+from executor.cli_pallet import add_parsers
+from geometry import SE3
+from perception.calibration_io import Calibration, save_calibration
+from perception.errors import PerceptionError
+from perception.frames import SemanticClass, save_bundle
+from perception.pallet import PalletNotFound
+
+
+def run(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="palletpilot")
+    add_parsers(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+@pytest.fixture(scope="module")
+def frame():
+    spec = FrameSpec("floor_b2", loaded=False, dx=0.0, dy=0.08, dyaw_deg=4.0, ahead=1.5, seed=3)
+    return render(spec, noise=False)[0]
+
+
+@pytest.fixture
+def calib(tmp_path, frame):
+    cal = Calibration(SE3.from_matrix(frame.truth["T_forklift_camera_true"]), "true")
+    return str(save_calibration(tmp_path / "calib.json", cal))
+
+
+def test_json_output(tmp_path, frame, calib, capsys):
+    path = str(save_bundle(tmp_path / "frame.npz", frame))
+    assert run(["estimate-pallet", path, "--calibration", calib, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert {"T_forklift_pallet", "x_m", "y_m", "z_m", "yaw_deg", "spread"} <= set(doc)
+    T = np.array(doc["T_forklift_pallet"])
+    truth = frame.truth["T_forklift_pallet_true"]
+    assert T.shape == (4, 4) and np.allclose(T[:3, 3], truth[:3, 3], atol=2e-3)
+    assert doc["x_m"] == pytest.approx(truth[0, 3], abs=1e-3) and doc["y_m"] == pytest.approx(truth[1, 3], abs=1e-3)
+    assert doc["yaw_deg"] == pytest.approx(4.0, abs=0.05)
+    assert set(doc["spread"]) == {"x_m", "y_m", "yaw_deg"}
+
+
+def test_text_output(tmp_path, frame, calib, capsys):
+    path = str(save_bundle(tmp_path / "frame.npz", frame))
+    assert run(["estimate-pallet", path, "--calibration", calib]) == 0
+    assert capsys.readouterr().out.startswith("pallet at x ")
+
+
+def test_not_found_propagates_as_pallet_not_found(tmp_path, frame, calib):
+    labels = np.where(np.isin(frame.labels, (7, 8)), SemanticClass.DRIVABLE, frame.labels).astype(np.uint8)
+    path = str(save_bundle(tmp_path / "empty.npz", dataclasses.replace(frame, labels=labels)))
+    with pytest.raises(PalletNotFound, match="too few points") as info:
+        run(["estimate-pallet", path, "--calibration", calib])
+    assert str(info.value).startswith(f"{path}: pallet not found") and "\n" not in str(info.value)
+    assert info.value.reason == "too_few_points"
+
+
+def test_without_labels_or_rgb_says_labels_are_needed(tmp_path, frame, calib):
+    path = str(save_bundle(tmp_path / "bare.npz", dataclasses.replace(frame, labels=None, rgb=None)))
+    with pytest.raises(PerceptionError, match="labels"):
+        run(["estimate-pallet", path, "--calibration", calib])
+
+
+def test_bad_calibration_file_is_a_perception_error(tmp_path, frame):
+    path = str(save_bundle(tmp_path / "frame.npz", frame))
+    bad = tmp_path / "calib.json"
+    bad.write_text("{}")
+    with pytest.raises(PerceptionError, match="not a calibration file"):
+        run(["estimate-pallet", path, "--calibration", str(bad)])
