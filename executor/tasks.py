@@ -16,16 +16,19 @@ original Pickup: no camera, only the safety check.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from control.errors import ControlError
 from control.follower import Follower, FollowerStatus
 from control.vehicle import VehicleParams
 from executor.ports import PerceptionService, VehiclePort
-from geometry import SE2, PalletpilotError
+from geometry import SE2, SE3, PalletpilotError
 from perception.alignment import AlignmentTolerances, check_alignment
 from perception.calibration import CalibrationError
 from perception.calibration_io import Calibration
@@ -184,6 +187,7 @@ class Settings:
     lift_delta: float = 0.08  # lift above the entry height to carry
     travel_height: float = 0.0  # fork height while driving empty
     calibration_retries: int = 1
+    frames_per_estimate: int = 3  # the pallet stands still: averaging frames (and localization fixes) cuts noise
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least
     return_on_failure: bool = False
     adapt: bool = True
@@ -356,6 +360,20 @@ class CalibrateCamera(Behaviour):
         raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {errors[-1]}")
 
 
+def _averaged(estimates: list[PalletEstimate]) -> PalletEstimate:
+    """One estimate from several of a standing pallet: mean world position and height, circular mean yaw."""
+    if len(estimates) == 1:
+        return estimates[0]
+    poses = [e.T_world_pallet for e in estimates]
+    assert all(p is not None for p in poses)
+    xyz = np.mean([p.t for p in poses], axis=0)  # type: ignore[union-attr]
+    yaws = np.array([p.to_se2().yaw for p in poses])  # type: ignore[union-attr]
+    yaw = math.atan2(float(np.mean(np.sin(yaws))), float(np.mean(np.cos(yaws))))
+    world = SE3.from_xyz_rpy(xyz, (0.0, 0.0, yaw))
+    extras = {**estimates[0].extras, "frames": len(estimates)}
+    return dataclasses.replace(estimates[0], T_world_pallet=world, extras=extras)
+
+
 class EstimatePallet(Behaviour):
     """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned."""
 
@@ -364,11 +382,16 @@ class EstimatePallet(Behaviour):
     def update(self, ctx: Context) -> str | None:
         assert ctx.perception is not None and ctx.calibration is not None
         ctx.attempts += 1
-        pose = ctx.vehicle.localization()
-        try:
-            est = ctx.perception.estimate_pallet(ctx.grab(), ctx.calibration, pose)
-        except PerceptionError as exc:
-            raise TaskFailed(PALLET_NOT_FOUND, str(exc)) from None
+        estimates, errors = [], []
+        for _ in range(max(1, ctx.settings.frames_per_estimate)):
+            try:
+                pose = ctx.vehicle.localization()
+                estimates.append(ctx.perception.estimate_pallet(ctx.grab(), ctx.calibration, pose))
+            except PerceptionError as exc:
+                errors.append(str(exc))
+        if not estimates:
+            raise TaskFailed(PALLET_NOT_FOUND, errors[-1])
+        est = _averaged(estimates)
         assert est.T_world_pallet is not None
         ctx.estimate = est
         node = ctx.roadmap.node(ctx.pallet_node)
