@@ -283,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=cmd_bench)
 
     # Commands defined next to the code they drive.
-    for module in ("executor.cli_capture", "executor.cli_pallet"):
+    for module in ("executor.cli_capture", "executor.cli_pallet", "executor.cli_segmentation"):
         importlib.import_module(module).add_parsers(sub)
     return parser
 

@@ -1,0 +1,113 @@
+"""Segmentation service: the shipped ONNX model on a fresh simulator frame, metadata, errors, ensure_labels."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from perception.errors import PerceptionError
+from perception.frames import FrameBundle, SemanticClass
+from perception.segmentation import (
+    DEFAULT_MODEL,
+    GroundTruthSegmenter,
+    OnnxSegmenter,
+    SegmentationService,
+    confusion,
+    ensure_labels,
+    evaluate_segmenter,
+    iou_from_confusion,
+)
+from sim.scenario import load_scenario
+from sim.simulator import Simulator
+
+MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+
+
+@pytest.fixture(scope="module")
+def segmenter() -> OnnxSegmenter:
+    return OnnxSegmenter(DEFAULT_MODEL)
+
+
+@pytest.fixture(scope="module")
+def sim_frame() -> FrameBundle:
+    """A freshly rendered frame (D435 noise, lighting variation) from the floor scenario's pre-pallet node."""
+    sc = load_scenario(MISSIONS / "scenario_floor.yaml")
+    sc.camera.noise = sc.camera.noise.model_copy(update={"label_noise": False})  # exact truth to score against
+    sim = Simulator(sc, seed=123)
+    sim.set_fork_height(0.03)
+    for _ in range(20):
+        sim.step()
+    return sim.grab()
+
+
+def test_shipped_model_is_small_and_has_its_metadata(segmenter):
+    assert DEFAULT_MODEL.stat().st_size <= 10 * 1024 * 1024
+    assert segmenter.input_size == (320, 240)
+    assert segmenter.info.class_ids == tuple(range(10))
+    assert segmenter.info.class_names[SemanticClass.PALLET_FULL] == "pallet_full"
+    assert len(segmenter.info.mean) == 3 and len(segmenter.info.std) == 3
+    assert "CPUExecutionProvider" in segmenter.providers
+    assert isinstance(segmenter, SegmentationService)
+
+
+def test_shipped_model_segments_a_fresh_sim_frame(segmenter, sim_frame):
+    labels = segmenter.segment(sim_frame.rgb)
+    assert labels.shape == sim_frame.labels.shape and labels.dtype == np.uint8
+    iou = iou_from_confusion(confusion(sim_frame.labels, labels))
+    assert iou[SemanticClass.DRIVABLE] > 0.9
+    assert iou[SemanticClass.FORKS] > 0.9
+    assert iou[SemanticClass.PALLET_EMPTY] > 0.6  # the misplaced empty pallet ahead
+
+
+def test_evaluate_segmenter_pools_pixels(sim_frame):
+    result = evaluate_segmenter(GroundTruthSegmenter.from_bundle(sim_frame), [sim_frame])
+    assert result["frames"] == 1
+    assert result["iou"]["drivable"] == 1.0 and result["iou"]["forks"] == 1.0
+    assert result["iou"]["other_vehicle"] is None
+
+
+def test_missing_model_file_is_one_clear_error(tmp_path):
+    path = tmp_path / "nope.onnx"
+    with pytest.raises(PerceptionError, match=r"nope\.onnx: segmentation model not found"):
+        OnnxSegmenter(path)
+
+
+def test_corrupt_model_file_is_one_clear_error(tmp_path):
+    path = tmp_path / "garbage.onnx"
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(PerceptionError, match=r"garbage\.onnx: not a readable ONNX segmentation model") as err:
+        OnnxSegmenter(path)
+    assert "\n" not in str(err.value)
+
+
+def test_model_without_metadata_is_refused(tmp_path):
+    onnx = pytest.importorskip("onnx")
+    proto = onnx.load(str(DEFAULT_MODEL))
+    del proto.metadata_props[:]
+    path = tmp_path / "bare.onnx"
+    onnx.save(proto, str(path))
+    with pytest.raises(PerceptionError, match=r"bare\.onnx: model metadata lacks input_width"):
+        OnnxSegmenter(path)
+
+
+def test_segment_rejects_a_non_rgb_image(segmenter):
+    with pytest.raises(PerceptionError, match="uint8 H x W x 3"):
+        segmenter.segment(np.zeros((48, 64), np.uint8))
+
+
+def test_ensure_labels_fills_missing_labels(segmenter, sim_frame):
+    bare = FrameBundle(depth=sim_frame.depth, K=sim_frame.K, rgb=sim_frame.rgb, fork_height=sim_frame.fork_height)
+    filled = ensure_labels(bare, segmenter)
+    assert filled.labels is not None and filled.labels.shape == bare.depth.shape
+    assert filled.fork_height == bare.fork_height and filled.rgb is bare.rgb
+    assert ensure_labels(sim_frame, segmenter) is sim_frame  # labelled: unchanged
+    truth = ensure_labels(bare, GroundTruthSegmenter(lambda: sim_frame.labels))
+    np.testing.assert_array_equal(truth.labels, sim_frame.labels)
+    with pytest.raises(PerceptionError, match="no rgb"):
+        ensure_labels(FrameBundle(depth=sim_frame.depth, K=sim_frame.K), segmenter)
+
+
+def test_ground_truth_segmenter_checks_the_size(sim_frame):
+    seg = GroundTruthSegmenter(sim_frame.labels)
+    with pytest.raises(PerceptionError, match="do not fit"):
+        seg.segment(np.zeros((10, 10, 3), np.uint8))
