@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
@@ -20,7 +21,6 @@ from executor.ports import LocalPerception
 from executor.report import summary, write_report
 from executor.runner import Runner, SimClock
 from executor.tasks import Settings
-from geometry import SE2
 from perception.specs import node_pose_for_pallet
 from roadmap import NodeType, load_map, map_vehicle_file
 from sim.scenario import Scenario, SimError, load_scenario
@@ -68,8 +68,13 @@ def run_simulated(
     settings: Settings | None = None,
     progress: TextIO | None = None,
     scenario: Scenario | None = None,
+    on_start: Callable[[Runner], None] | None = None,
 ) -> SimRun:
-    """Validate and run a mission in the simulator; write the report when `report_dir` is given."""
+    """Validate and run a mission in the simulator; write the report when `report_dir` is given.
+
+    `on_start(runner)` is called once the runner exists and before it runs (e.g. to pause, resume or
+    cancel it from a signal handler).
+    """
     mission = load_mission(mission_path)
     if scenario is None:
         scenario = load_scenario(scenario_path) if scenario_path else default_scenario(mission)
@@ -103,8 +108,10 @@ def run_simulated(
             events=events,
             progress=progress,
         )
+        if on_start is not None:
+            on_start(runner)
         success = runner.run()
-    truth = [node_pose_for_pallet(p.T_world_pallet) @ SE2(0.0, 0.0, 0.0) for p in sim.pallets]
+    truth = [node_pose_for_pallet(p.T_world_pallet) for p in sim.pallets]
     report = None
     if report_dir is not None:
         report = write_report(

@@ -146,21 +146,21 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     progress = None if args.json or args.quiet else sys.stderr
     report = args.report or "out/run"
-    run_holder: dict = {}
 
-    def pause(_sig: int, _frame: object) -> None:
-        if "runner" in run_holder:
-            run_holder["runner"].pause()
+    def attach(runner: object) -> None:
+        """SIGUSR1 pauses the running mission, SIGUSR2 resumes it."""
+        signal.signal(signal.SIGUSR1, lambda _sig, _frame: runner.pause())  # type: ignore[attr-defined]
+        signal.signal(signal.SIGUSR2, lambda _sig, _frame: runner.resume())  # type: ignore[attr-defined]
 
-    def resume(_sig: int, _frame: object) -> None:
-        if "runner" in run_holder:
-            run_holder["runner"].resume()
-
-    signal.signal(signal.SIGUSR1, pause)
-    signal.signal(signal.SIGUSR2, resume)
     try:
         result = run_simulated(
-            args.mission, args.scenario, seed=args.seed, report_dir=report, adapt=not args.no_adapt, progress=progress
+            args.mission,
+            args.scenario,
+            seed=args.seed,
+            report_dir=report,
+            adapt=not args.no_adapt,
+            progress=progress,
+            on_start=attach,
         )
     except KeyboardInterrupt:
         print("cancelled: the vehicle is stopped", file=sys.stderr)

@@ -14,10 +14,8 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, TextIO
 
 from control.follower import Follower
@@ -320,14 +318,3 @@ def _jsonable(obj: object) -> object:
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return str(obj)
-
-
-def write_stream(path: Path | None) -> TextIO | None:
-    """Open an events file (JSON lines) or return None."""
-    if path is None:
-        return None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path.open("w")
-
-
-STDERR = sys.stderr

@@ -150,35 +150,50 @@ def test_cancel_stops_the_vehicle(tmp_path):
 
     path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
     sc = default_scenario(load_mission(path))
-    # Cancel once the forklift has started to move: hook the simulator's step.
-    from sim.simulator import Simulator
 
-    original = Simulator.step
-    holder = {}
+    def cancel_after_5_s(runner):
+        # Cancel once the forklift has started to move: hook the simulated clock.
+        clock_tick = runner.clock.tick
 
-    def step(self, dt=0.05):
-        original(self, dt)
-        runner = holder.get("runner")
-        if self.time > 5.0 and runner is not None:
-            runner.cancel()
+        def tick():
+            clock_tick()
+            if runner.clock.now() > 5.0:
+                runner.cancel()
 
-    import executor.runner as runner_mod
+        runner.clock.tick = tick
 
-    original_init = runner_mod.Runner.__init__
-
-    def init(self, *a, **k):
-        original_init(self, *a, **k)
-        holder["runner"] = self
-
-    Simulator.step = step
-    runner_mod.Runner.__init__ = init
-    try:
-        r = run_simulated(path, scenario=sc)
-    finally:
-        Simulator.step = original
-        runner_mod.Runner.__init__ = original_init
+    r = run_simulated(path, scenario=sc, on_start=cancel_after_5_s)
     assert not r.success and r.summary["tasks"][0]["reason"] == "cancelled"
     assert r.runner.clock.now() < 10.0
+    assert abs(r.sim.speed) < 1e-3
+
+
+def test_pause_holds_the_vehicle_still(tmp_path):
+    from executor.app import default_scenario
+    from executor.mission import load_mission
+
+    path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
+    sc = default_scenario(load_mission(path))
+    poses = []
+
+    def pause_between_5_and_15_s(runner):
+        clock_tick = runner.clock.tick
+
+        def tick():
+            clock_tick()
+            t = runner.clock.now()
+            if 5.0 < t < 15.0:
+                runner.pause()
+            elif t >= 15.0:
+                runner.resume()
+            if 8.0 < t < 15.0:
+                poses.append(runner.ctx.vehicle.true_pose)
+
+        runner.clock.tick = tick
+
+    r = run_simulated(path, scenario=sc, on_start=pause_between_5_and_15_s)
+    assert r.success
+    assert poses and all(p.isclose(poses[0], atol=1e-6) for p in poses)  # stood still while paused
 
 
 def test_mission_diagram(tmp_path):
