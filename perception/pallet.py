@@ -757,6 +757,10 @@ def estimate_pallet(
         margin = 0.5 * footprint + 0.003
         on_face = model.solid(fc.s - s0, fc.h - z0, margin, margin)
         res = fc.w - fc.nd / fc.D
+        # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
+        # the forklift origin, so a new plane (another yaw) needs it re-expressed, or the pallet model
+        # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
+        centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
         for _ in range(3):
             use = on_face & (np.abs(res) < trunc * sigma)
             if use.sum() < cfg.min_face_pixels:
@@ -765,6 +769,7 @@ def estimate_pallet(
             res = all_rays.w - plane.predict(all_rays.d)
             sigma = _robust_sigma(res[use], cfg.min_sigma_w)
         plane = _fit_plane(all_rays.d[use], all_rays.w[use], sigma)
+        s0 = float(plane.e @ centre)
         n_face = int(use.sum())
         # Optionally side walls seen at a slant: one fit of face and walls together.
         n_wall = 0

@@ -69,6 +69,16 @@ def test_noisy_frame_is_within_the_goals_and_gives_the_world_pose():
     assert set(doc) >= {"T_forklift_pallet", "x_m", "y_m", "z_m", "yaw_deg", "spread", "T_world_pallet"}
 
 
+def test_a_far_turned_rack_pallet_keeps_its_lateral_centre():
+    """A pallet turned 14 deg at 4 m: the first plane's yaw is 1.6 deg off, and the refined plane must carry
+    the lateral centre over (it once slid 11 cm sideways, giving 29 mm lateral and 1.8 deg yaw errors)."""
+    spec = FrameSpec("rack_b3", loaded=False, dx=-0.0485, dy=0.2545, dyaw_deg=14.436, ahead=2.923, seed=1991627721)
+    frame, _ = render(spec)
+    est = estimate_pallet(frame, true_calibration(frame))
+    lateral, longitudinal, _, yaw = errors(frame, est.T_forklift_pallet)
+    assert abs(lateral) < 0.010 and abs(longitudinal) < 0.015 and abs(math.degrees(yaw)) < 0.7
+
+
 def test_too_few_points():
     frame, _ = render(FrameSpec("floor_b2", False, 0.0, 0.0, 0.0, 1.4, 1), noise=False)
     labels = frame.labels.copy()
