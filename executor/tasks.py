@@ -16,25 +16,22 @@ original Pickup: no camera, only the safety check.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from control.errors import ControlError
 from control.follower import Follower, FollowerStatus
 from control.vehicle import VehicleParams
 from executor.ports import PerceptionService, VehiclePort
-from geometry import SE2, SE3, PalletpilotError
+from geometry import SE2, PalletpilotError
 from perception.alignment import AlignmentTolerances, check_alignment
 from perception.calibration import CalibrationError
 from perception.calibration_io import Calibration
 from perception.errors import PerceptionError
 from perception.frames import FrameBundle
-from perception.pallet import PalletEstimate
+from perception.pallet import PalletEstimate, fuse_estimates
 from perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, node_pose_for_pallet
 from roadmap import Direction, Edge, Node, NodeType, Overlay, Planner, Roadmap, RoadmapError, connect, reference_path
 from roadmap.planner import Route
@@ -360,20 +357,6 @@ class CalibrateCamera(Behaviour):
         raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {errors[-1]}")
 
 
-def _averaged(estimates: list[PalletEstimate]) -> PalletEstimate:
-    """One estimate from several of a standing pallet: mean world position and height, circular mean yaw."""
-    if len(estimates) == 1:
-        return estimates[0]
-    poses = [e.T_world_pallet for e in estimates]
-    assert all(p is not None for p in poses)
-    xyz = np.mean([p.t for p in poses], axis=0)  # type: ignore[union-attr]
-    yaws = np.array([p.to_se2().yaw for p in poses])  # type: ignore[union-attr]
-    yaw = math.atan2(float(np.mean(np.sin(yaws))), float(np.mean(np.cos(yaws))))
-    world = SE3.from_xyz_rpy(xyz, (0.0, 0.0, yaw))
-    extras = {**estimates[0].extras, "frames": len(estimates)}
-    return dataclasses.replace(estimates[0], T_world_pallet=world, extras=extras)
-
-
 class EstimatePallet(Behaviour):
     """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned."""
 
@@ -391,7 +374,7 @@ class EstimatePallet(Behaviour):
                 errors.append(str(exc))
         if not estimates:
             raise TaskFailed(PALLET_NOT_FOUND, errors[-1])
-        est = _averaged(estimates)
+        est = fuse_estimates(estimates)
         assert est.T_world_pallet is not None
         ctx.estimate = est
         node = ctx.roadmap.node(ctx.pallet_node)

@@ -32,7 +32,14 @@ Method, in the forklift frame with the camera at `calibration.T_forklift_camera_
    widths and centres, which must match the pallet type (else `PalletNotFound`), and the lateral
    centre is the mean of the two pocket centres.
 
+5. **Deck.** Where the camera sees the top deck (an empty pallet from above), the deck boards' side
+   edges, lines along the whole pallet length, refine the yaw (`_deck_yaw`): each deck pixel is
+   predicted on a board or past its edge for a yaw turned about the entry-face centre, scored in
+   inverse depth together with the face fit's own yaw term. A load on the deck switches it off.
+
 Geometry, not label boundaries, places the edges: a pixel's evidence is its depth against the model.
+`fuse_estimates` combines the estimates of several frames from one standpoint (inverse-variance
+weights from their spreads); the Pickup acts on three.
 Spread (1-sigma): yaw and the face distance from the plane fit's covariance, the lateral centre from
 the pocket edges' scatter and pixel footprint.
 """
@@ -110,6 +117,20 @@ class PalletEstimatorConfig:
     thin wall pixels at 2.5-4 m made the yaw slightly worse (p95 0.64 vs 0.51 deg on 60 frames)."""
     min_wall_pixels: int = 30
     """Fewest side-wall pixels for the joint face-and-walls fit."""
+    deck_yaw: bool = True
+    """Refine the yaw with the top deck's board edges where the camera sees the deck (see `_deck_yaw`)."""
+    deck_min_pixels: int = 150
+    """Fewest unoccluded deck pixels for the deck refinement."""
+    deck_min_camera_height_m: float = 0.05
+    """The camera must be this far above the deck for the refinement (a grazing view tells nothing)."""
+    deck_front_margin_m: float = 0.03
+    """Deck pixels nearer than this to the entry face are left out (the face's top edge)."""
+    deck_cargo_margin_px: int = 3
+    """Pixels this close to cargo-labelled pixels are left out (labels may be a few pixels off)."""
+    deck_yaw_search_deg: float = 1.5
+    """Largest yaw change the deck may make (searched within 4 face sigmas, at most this)."""
+    deck_lateral_step_m: float = 0.0005
+    """Resolution of the lateral cost tables."""
 
 
 DEFAULT_CONFIG = PalletEstimatorConfig()
@@ -193,6 +214,7 @@ class _Model:
     columns: np.ndarray  # (3, 2) block column (y_lo, y_hi), right to left
     block_top: float  # top of the block layer = pocket height
     cross_top: float  # top of the cross boards
+    top_boards_thickness: float
     block_length: float
     top_boards: np.ndarray  # (B, 2) deck boards (y_lo, y_hi)
     pocket_width: float
@@ -209,6 +231,7 @@ class _Model:
             columns=cols,
             block_top=p.pocket_height,
             cross_top=p.pocket_height + p.cross_board_thickness,
+            top_boards_thickness=p.top_board_thickness,
             block_length=p.block_length,
             top_boards=boards,
             pocket_width=p.pocket_width,
@@ -630,13 +653,164 @@ def _roi(
     corners = np.array(
         [plane.n * (plane.n @ cam + plane.D) + s * plane.e + np.array([0, 0, h]) for s in s_range for h in h_range]
     )
-    pc = T_cf.inv().apply(corners)
-    if np.any(pc[:, 2] <= 0.05):
+    if np.any(T_cf.inv().apply(corners)[:, 2] <= 0.05):
         raise PalletNotFound("no_entry_face", "the entry face would lie behind the camera")
+    return _image_box(frame, T_cf, corners)
+
+
+def _image_box(frame: FrameBundle, T_cf: SE3, corners: np.ndarray) -> tuple[slice, slice]:
+    """Image rows and columns (clipped to the image) covering forklift-frame points, a few pixels wider.
+
+    Points behind the camera are clipped to 5 cm in front of it (the box then reaches the image border).
+    """
+    pc = T_cf.inv().apply(corners)
+    pc[:, 2] = np.maximum(pc[:, 2], 0.05)
     uv = pc[:, :2] / pc[:, 2:] * np.diag(frame.K)[:2] + frame.K[:2, 2]
     u0, v0 = np.floor(uv.min(axis=0)).astype(int) - 3
     u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + 4
     return slice(max(v0, 0), max(min(v1, frame.height), 0)), slice(max(u0, 0), max(min(u1, frame.width), 0))
+
+
+@dataclass(frozen=True)
+class _DeckYaw:
+    """Result of `_deck_yaw`: the yaw (rad) and its 1-sigma (rad), the deck pixels used, the deck height (m)."""
+
+    psi: float
+    sigma_psi: float
+    n_pixels: int
+    deck_height: float
+
+
+def _deck_yaw(
+    frame: FrameBundle,
+    T_cf: SE3,
+    valid: np.ndarray,
+    model: _Model,
+    plane: _Plane,
+    s0: float,
+    z0: float,
+    sigma: float,
+    cfg: PalletEstimatorConfig,
+) -> _DeckYaw | None:
+    """Yaw from the top deck's board edges, fused with the entry face's yaw; None where too little deck is seen.
+
+    The deck boards run along the pallet's x axis for its whole length, so their side edges are long
+    lines that turn with the pallet. A camera above the deck sees a board's top at the deck height
+    (measured here from the deck pixels themselves), while past a board's edge a ray ends on the
+    board's side wall or at least a board's thickness lower. For a yaw hypothesis (the pallet turned
+    about the centre of its entry face, which the face and pockets fix) each deck pixel's inverse
+    depth is predicted that way and scored by a truncated chi-square, plus the face fit's own term
+    ((psi - psi_face) / sigma_face)^2. Occluders (a load on the deck: labelled cargo, or nearer than
+    the deck) and pixels next to depth jumps are left out; label boundaries never place an edge.
+
+    Each pixel's cost is tabulated against the lateral offset of its deck point (a turn by t moves a
+    point x behind the face sideways by about -x t), so a hypothesis costs one lookup per pixel.
+    The 1-sigma is the half-width of the yaws within 1 of the minimum cost, at least the turn that
+    moves the deck's far end by a pixel's quantisation (footprint / sqrt(12)).
+    """
+    R, cam = T_cf.R, T_cf.t
+    deck_h = z0 + model.height
+    if cam[2] < deck_h + cfg.deck_min_camera_height_m or frame.labels is None:
+        return None
+    centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
+    centre[2] = deck_h
+    margin = 0.1
+    corners = np.array(
+        [
+            centre + x * plane.n + y * plane.e
+            for x in (cfg.deck_front_margin_m, model.length + margin)
+            for y in (-0.5 * model.width - margin, 0.5 * model.width + margin)
+        ]
+    )
+    rs, cs = _image_box(frame, T_cf, corners)
+    if rs.stop - rs.start < 2 or cs.stop - cs.start < 2:
+        return None
+    sub_valid = valid[rs, cs]
+    rr, cc = np.nonzero(sub_valid & ~_depth_edges(frame.depth[rs, cs], sub_valid, cfg))
+    # A load on the deck hides it: cargo pixels (and a margin around them for label offsets) are left out.
+    cargo = class_mask(frame.labels[rs, cs], (int(SemanticClass.CARGO),))
+    if cargo.any():
+        import cv2
+
+        k = 2 * cfg.deck_cargo_margin_px + 1
+        cargo = cv2.dilate(cargo.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        keep = ~cargo[rr, cc]
+        rr, cc = rr[keep], cc[keep]
+    rays = _rays(frame.depth, frame.K, R, rr + rs.start, cc + cs.start, np.ones(len(rr), bool))
+    rays = rays.subset(rays.d[:, 2] < -1e-6)  # rays that go down
+    z_deck = (deck_h - cam[2]) / rays.d[:, 2]  # camera z-depth where each ray meets the deck plane
+    q = cam[:2] + rays.d[:, :2] * z_deck[:, None] - centre[:2]
+    x_p, y_p = q @ plane.n[:2], q @ plane.e[:2]
+    trunc = cfg.truncation_sigma
+    use = (x_p >= cfg.deck_front_margin_m) & (x_p <= model.length + margin)
+    use &= np.abs(y_p) <= 0.5 * model.width + margin
+    use &= rays.w < 1.0 / z_deck + trunc * sigma  # nearer than the deck: something on or in front of it
+    idx = np.flatnonzero(use)
+    if idx.size < cfg.deck_min_pixels:
+        return None
+    # The deck's height from its own pixels: at a grazing view a millimetre of height moves the deck
+    # points sideways by about a millimetre (their lateral over vertical ray slope), so the underside
+    # found from the pocket edges (good to ~2 mm) is not enough. Weighted mean of the heights near the
+    # deck, where a pixel's height sigma is |d_z| z^2 sigma_w.
+    d_all, w_all = rays.d[idx], rays.w[idx]
+    h_meas = cam[2] + d_all[:, 2] / w_all
+    sigma_h = np.abs(d_all[:, 2]) * sigma / (w_all * w_all)
+    band = 0.5 * model.top_boards_thickness
+    for _ in range(3):
+        on = np.abs(h_meas - deck_h) < np.clip(2.5 * sigma_h, 0.004, band)  # the first guess may be mm off
+        if on.sum() < cfg.deck_min_pixels // 2:
+            return None
+        wt = 1.0 / np.maximum(sigma_h[on], 1e-5) ** 2
+        deck_h = float(np.sum(wt * h_meas[on]) / np.sum(wt))
+    z_deck = (deck_h - cam[2]) / rays.d[:, 2]
+    q = cam[:2] + rays.d[:, :2] * z_deck[:, None] - centre[:2]
+    q, w, z_deck, d = q[idx], rays.w[idx], z_deck[idx], rays.d[idx]
+    thick = model.top_boards_thickness
+    w_low = 1.0 / ((deck_h - thick - cam[2]) / d[:, 2])  # a board's thickness below the deck
+    sigma_face = math.sqrt(max(_yaw_variance(plane), 1e-12))
+    psi_face = plane.psi
+    span = min(4.0 * sigma_face, math.radians(cfg.deck_yaw_search_deg))
+    step = cfg.deck_lateral_step_m
+    reach = model.length * span + 2 * step  # largest lateral offset a hypothesis gives a pixel
+    offsets = np.arange(-reach, reach + 0.5 * step, step)
+
+    def table(psi_b: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel x in the pallet frame at yaw `psi_b`, and each pixel's cost per lateral offset (N, K).
+
+        Only pixels whose cost changes with the offset are kept (far from every edge all yaws score alike).
+        """
+        n2 = np.array([math.cos(psi_b), math.sin(psi_b)])
+        e2 = np.array([-n2[1], n2[0]])
+        xh, yh = q @ n2, q @ e2
+        slope_y = (d[:, :2] @ e2) / -d[:, 2]  # lateral change per metre of descent below the deck
+        slope_x = (d[:, :2] @ n2) / -d[:, 2]
+        descent = _wall_delta(yh[:, None] + offsets[None], slope_y[:, None], model.top_boards, thick)
+        x_end = xh[:, None] + slope_x[:, None] * np.where(np.isfinite(descent), descent, 0.0)
+        descent = np.where((x_end >= 0.0) & (x_end <= model.length), descent, np.inf)
+        hit = np.isfinite(descent)
+        w_hit = 1.0 / (z_deck[:, None] + np.where(hit, descent, 0.0) / -d[:, 2:3])
+        r = np.where(hit, w[:, None] - w_hit, np.maximum(w - w_low, 0.0)[:, None]) / sigma
+        cost = np.minimum(r * r, trunc * trunc)
+        informative = np.ptp(cost, axis=1) > 1e-9
+        return xh[informative], cost[informative]
+
+    def total(dpsi: np.ndarray, dpsi_b: float, xh: np.ndarray, cost: np.ndarray) -> np.ndarray:
+        u = -xh[:, None] * (dpsi[None] - dpsi_b)
+        k = np.clip(np.rint((u + reach) / step).astype(int), 0, len(offsets) - 1)
+        return cost[np.arange(len(xh))[:, None], k].sum(axis=0) + (dpsi / sigma_face) ** 2
+
+    # Coarse search on the table at the face's yaw, then a fine one on a table rebuilt at that answer
+    # (the rays' slopes in the pallet frame turn with the yaw).
+    dpsi = 0.0
+    for half in (span, 0.15 * span):
+        xh, cost = table(psi_face + dpsi)
+        grid = dpsi + np.linspace(-half, half, 41)
+        tot = total(grid, dpsi, xh, cost)
+        dpsi = float(grid[int(np.argmin(tot))])
+    near_min = grid[tot <= tot.min() + 1.0]
+    footprint_far = float(np.max(z_deck)) / float(frame.K[0, 0])
+    sig = max(0.5 * float(np.ptp(near_min)), footprint_far / math.sqrt(12.0) / model.length)
+    return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), int(idx.size), deck_h)
 
 
 def estimate_pallet(
@@ -819,6 +993,15 @@ def estimate_pallet(
     # Two pocket centres; floored at half a pixel footprint, which matches the benchmark's scatter.
     sigma_s = max(edge_sigma / math.sqrt(2.0), 0.5 * footprint)
 
+    # 5. The top deck's board edges, where the camera sees the deck: turn the plane about the face centre.
+    deck = _deck_yaw(frame, T_cf, valid, model, plane, s0, z0, sigma, cfg) if cfg.deck_yaw else None
+    if deck is not None:
+        centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
+        n_new = np.array([math.cos(deck.psi), math.sin(deck.psi), 0.0])
+        D_new = float(n_new @ (centre - cam))
+        plane = _Plane(n_new[0] / D_new, n_new[1] / D_new, plane.cov)
+        s0 = float(plane.e @ centre)
+
     # Pose and spread.
     psi, D = plane.psi, plane.D
     n, e = plane.n, plane.e
@@ -826,6 +1009,8 @@ def estimate_pallet(
     origin = rho * n + s0 * e
     T_fp = SE3(Rotation.from_euler("z", psi), (origin[0], origin[1], z0))
     sx, sy, syaw = _spread(plane, cam, s0, sigma_s, cov3)
+    if deck is not None:
+        syaw = deck.sigma_psi
     res = all_rays.w - plane.predict(all_rays.d)
     estimate = PalletEstimate(
         T_forklift_pallet=T_fp,
@@ -841,6 +1026,8 @@ def estimate_pallet(
             "lateral_fit_m": float(s0 - centre_offset),
             "face_distance_m": D,
             "plane_residual_rms": float(np.sqrt(np.mean(res[np.abs(res) < trunc * sigma] ** 2))),
+            "deck_pixels": 0 if deck is None else deck.n_pixels,
+            "deck_height_m": None if deck is None else deck.deck_height,
         },
     )
     return estimate
@@ -912,11 +1099,75 @@ def _spread(
     sigma_lam = lam * lam * math.sqrt(max(float(u[:2] @ plane.cov @ u[:2]), 0.0))
     sigma_n = float(n @ u) * sigma_lam
     cov_xy = sigma_n**2 * np.outer(n[:2], n[:2]) + sigma_s**2 * np.outer(e[:2], e[:2])
-    if cov3 is not None:
-        var_yaw = float(cov3[0, 0])
-    else:
-        A, B = plane.A, plane.B
-        r2 = A * A + B * B
-        grad = np.array([-B / r2, A / r2])  # d psi / d (A, B)
-        var_yaw = float(grad @ plane.cov @ grad)
+    var_yaw = float(cov3[0, 0]) if cov3 is not None else _yaw_variance(plane)
     return math.sqrt(cov_xy[0, 0]), math.sqrt(cov_xy[1, 1]), math.sqrt(max(var_yaw, 0.0))
+
+
+def _yaw_variance(plane: _Plane) -> float:
+    """Variance (rad^2) of the plane's yaw from the covariance of (A, B)."""
+    A, B = plane.A, plane.B
+    r2 = A * A + B * B
+    grad = np.array([-B / r2, A / r2])  # d psi / d (A, B)
+    return float(grad @ plane.cov @ grad)
+
+
+def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
+    """One estimate from several frames of a standing pallet, each weighted by its spread.
+
+    x, y (forklift frame, and the world frame where every estimate has `T_world_pallet`) and yaw are
+    inverse-variance weighted means (the spreads come from each frame's fit, so a frame that sees
+    less counts less); the height is the plain mean. The spread of the result is that of the
+    weighted mean, 1 / sqrt(sum of 1 / sigma^2). All estimates must be of the same pallet from the
+    same standpoint (the forklift frame does not move between them).
+    """
+    if not estimates:
+        raise ValueError("fuse_estimates: no estimates")
+    if len(estimates) == 1:
+        return estimates[0]
+
+    def weights(values: list[float]) -> np.ndarray:
+        w = 1.0 / np.maximum(np.asarray(values), 1e-9) ** 2
+        return w / w.sum()
+
+    wx = weights([e.spread.x_m for e in estimates])
+    wy = weights([e.spread.y_m for e in estimates])
+    wyaw = weights([e.spread.yaw_rad for e in estimates])
+
+    def fuse(poses: list[SE3], wx: np.ndarray, wy: np.ndarray, wyaw: np.ndarray) -> SE3:
+        t = np.array([p.t for p in poses])
+        yaws = np.array([p.to_se2().yaw for p in poses])
+        ref = yaws[0]
+        yaw = ref + float(wyaw @ np.angle(np.exp(1j * (yaws - ref))))  # mean of the differences: no wrap-around
+        xyz = (float(wx @ t[:, 0]), float(wy @ t[:, 1]), float(np.mean(t[:, 2])))
+        return SE3(Rotation.from_euler("z", yaw), xyz)
+
+    T_fp = fuse([e.T_forklift_pallet for e in estimates], wx, wy, wyaw)
+    T_wp = None
+    if all(e.T_world_pallet is not None for e in estimates):
+        # The fused pallet carried into the world through each frame's own T_world_forklift, averaged
+        # (equal weights: those differ by localization noise only).
+        T_wf = [e.T_world_pallet @ e.T_forklift_pallet.inv() for e in estimates]  # type: ignore[operator]
+        equal = np.full(len(estimates), 1.0 / len(estimates))
+        T_wp = fuse([T @ T_fp for T in T_wf], equal, equal, equal)
+
+    def combined(values: list[float]) -> float:
+        return float(1.0 / math.sqrt(np.sum(1.0 / np.maximum(np.asarray(values), 1e-9) ** 2)))
+
+    spread = PalletSpread(
+        combined([e.spread.x_m for e in estimates]),
+        combined([e.spread.y_m for e in estimates]),
+        combined([e.spread.yaw_rad for e in estimates]),
+    )
+    first = estimates[0]
+    return PalletEstimate(
+        T_forklift_pallet=T_fp,
+        spread=spread,
+        n_points=sum(e.n_points for e in estimates),
+        n_face_points=sum(e.n_face_points for e in estimates),
+        pocket_widths_m=tuple(np.mean([e.pocket_widths_m for e in estimates], axis=0).tolist()),  # type: ignore[arg-type]
+        pocket_centres_y_m=tuple(np.mean([e.pocket_centres_y_m for e in estimates], axis=0).tolist()),  # type: ignore[arg-type]
+        residual_rms_w=float(np.mean([e.residual_rms_w for e in estimates])),
+        T_world_pallet=T_wp,
+        runtime_ms=sum(e.runtime_ms for e in estimates),
+        extras={**first.extras, "frames": len(estimates)},
+    )

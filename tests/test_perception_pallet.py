@@ -9,10 +9,11 @@ import pytest
 
 from bench.pallet import FrameSpec, render
 from geometry import SE2, SE3
+from perception import pallet as pallet_module
 from perception.alignment import AlignmentTolerances, check_alignment
 from perception.calibration_io import Calibration
 from perception.frames import FrameBundle, SemanticClass
-from perception.pallet import PalletNotFound, estimate_pallet
+from perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
 from perception.specs import PalletType, load_forks, node_pose_for_pallet, pallet_pose_at_node
 from sim.camera import CameraModel, RaycastRenderer, camera_mount_pose
 from sim.world import LabeledMesh, floor_mesh, object_box_mesh
@@ -77,6 +78,73 @@ def test_a_far_turned_rack_pallet_keeps_its_lateral_centre():
     est = estimate_pallet(frame, true_calibration(frame))
     lateral, longitudinal, _, yaw = errors(frame, est.T_forklift_pallet)
     assert abs(lateral) < 0.010 and abs(longitudinal) < 0.015 and abs(math.degrees(yaw)) < 0.7
+
+
+@pytest.mark.parametrize("ahead", [1.5, 2.9])
+def test_the_deck_edges_turn_a_wrong_face_yaw_back(ahead):
+    """Noise-free empty pallet: a face plane 0.5 deg off with a loose (1 deg) yaw sigma is turned back to
+    the true yaw by the deck's board edges alone, and the deck height comes from the deck pixels."""
+    spec = FrameSpec("floor_b1", loaded=False, dx=0.0, dy=-0.03, dyaw_deg=-13.6, ahead=ahead, seed=1)
+    frame, _ = render(spec, noise=False)
+    T_fc = true_calibration(frame).T_forklift_camera_at(frame.fork_height)
+    T_true = SE3.from_matrix(frame.truth["T_forklift_pallet_true"])
+    psi_true = T_true.to_se2().yaw
+    psi = psi_true + math.radians(0.5)
+    n = np.array([math.cos(psi), math.sin(psi), 0.0])
+    e = np.array([-n[1], n[0], 0.0])
+    D = float(n @ (T_true.t - T_fc.t))
+    r2 = 1.0 / D**2
+    # cov of (A, B) such that the yaw sigma is 1 deg: var(psi) = grad . cov . grad with |grad| = D.
+    cov = np.outer(e[:2], e[:2]) * math.radians(1.0) ** 2 * r2
+    plane = pallet_module._Plane(n[0] / D, n[1] / D, cov)
+    model = pallet_module._Model.of(PalletType.eur())
+    deck = pallet_module._deck_yaw(
+        frame,
+        T_fc,
+        frame.depth > 0,
+        model,
+        plane,
+        float(e @ T_true.t),
+        float(T_true.t[2]) + 0.002,
+        1e-4,
+        pallet_module.DEFAULT_CONFIG,
+    )
+    assert deck is not None and deck.n_pixels > 300
+    assert abs(math.degrees(deck.psi - psi_true)) < 0.03
+    assert deck.deck_height == pytest.approx(T_true.t[2] + PalletType.eur().height, abs=3e-4)
+
+
+def test_a_load_hides_the_deck():
+    spec = FrameSpec("floor_b2", loaded=True, dx=0.0, dy=0.1, dyaw_deg=5.0, ahead=2.0, seed=7)
+    frame, _ = render(spec, noise=False)
+    est = estimate_pallet(frame, true_calibration(frame))
+    assert est.extras["deck_pixels"] == 0
+    _, _, _, yaw = errors(frame, est.T_forklift_pallet)
+    assert abs(math.degrees(yaw)) < 0.05
+
+
+def test_fused_estimates_weigh_each_frame_by_its_spread():
+    spec = FrameSpec("floor_a2", loaded=True, dx=0.0, dy=0.1, dyaw_deg=4.0, ahead=2.6, seed=21)
+    T_world_forklift = SE2(3.0, 1.0, 0.3)
+    frame, _ = render(spec)
+    est = estimate_pallet(frame, true_calibration(frame), T_world_forklift=T_world_forklift)
+    # A second "frame" of the same pallet 0.2 deg further turned but four times less sure of its yaw.
+    turned = est.T_forklift_pallet @ SE3.from_xyz_rpy((0.0, 0.0, 0.0), (0.0, 0.0, math.radians(0.2)))
+    other = dataclasses.replace(
+        est,
+        T_forklift_pallet=turned,
+        T_world_pallet=T_world_forklift.to_se3() @ turned,
+        spread=dataclasses.replace(est.spread, yaw_rad=4 * est.spread.yaw_rad),
+    )
+    fused = fuse_estimates([est, other])
+    turn = math.degrees(fused.T_forklift_pallet.to_se2().yaw - est.T_forklift_pallet.to_se2().yaw)
+    assert turn == pytest.approx(0.2 / 17, abs=1e-6)  # weights 16 : 1
+    assert fused.spread.yaw_rad == pytest.approx(est.spread.yaw_rad / math.sqrt(1 + 1 / 16))
+    assert fused.T_world_pallet is not None
+    assert fused.T_world_pallet.isclose(T_world_forklift.to_se3() @ fused.T_forklift_pallet, atol=1e-9, atol_rot=1e-9)
+    assert fuse_estimates([est]) is est
+    with pytest.raises(ValueError):
+        fuse_estimates([])
 
 
 def test_too_few_points():
