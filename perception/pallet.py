@@ -64,6 +64,9 @@ from perception.specs import PalletType
 PALLET_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL))
 """Label ids of pallet pixels."""
 
+_ON_DECK_CLASSES = (int(SemanticClass.CARGO), int(SemanticClass.OTHER_OBJECT), int(SemanticClass.PERSON))
+"""Classes that may stand on a pallet's deck and hide it."""
+
 NotFoundReason = Literal["too_few_points", "no_entry_face", "pockets_inconsistent"]
 
 
@@ -108,6 +111,10 @@ class PalletEstimatorConfig:
     """Share of block-column pixels that must lie on the face."""
     truncation_sigma: float = 3.0
     rounds: int = 2
+    face_margin_px: float = 0.5
+    face_margin_m: float = 0.003
+    """The plane is refitted on pixels at least `face_margin_px` pixel footprints plus `face_margin_m` inside the
+    modelled solid face (its edges are known to a few millimetres)."""
     edge_jump_rel: float = 0.05
     """A pixel next to a depth jump of this share of its depth, or ..."""
     edge_jump_sigma: float = 5.0
@@ -126,7 +133,7 @@ class PalletEstimatorConfig:
     deck_front_margin_m: float = 0.03
     """Deck pixels nearer than this to the entry face are left out (the face's top edge)."""
     deck_cargo_margin_px: int = 3
-    """Pixels this close to cargo-labelled pixels are left out (labels may be a few pixels off)."""
+    """Pixels this close to cargo, other-object or person pixels are left out (labels may be a few pixels off)."""
     deck_yaw_search_deg: float = 1.5
     """Largest yaw change the deck may make (searched within 4 face sigmas, at most this)."""
     deck_lateral_step_m: float = 0.0005
@@ -727,8 +734,9 @@ def _deck_yaw(
         return None
     sub_valid = valid[rs, cs]
     rr, cc = np.nonzero(sub_valid & ~_depth_edges(frame.depth[rs, cs], sub_valid, cfg))
-    # A load on the deck hides it: cargo pixels (and a margin around them for label offsets) are left out.
-    cargo = class_mask(frame.labels[rs, cs], (int(SemanticClass.CARGO),))
+    # A load on the deck hides it: pixels of what may stand on a pallet (and a margin around them for
+    # label offsets) are left out; its lowest rows would otherwise pass for deck.
+    cargo = class_mask(frame.labels[rs, cs], _ON_DECK_CLASSES)
     if cargo.any():
         import cv2
 
@@ -928,7 +936,7 @@ def estimate_pallet(
             z0, _ = _best(vgrid, vcost)
 
         # Refit the plane on pixels the model puts on the solid face.
-        margin = 0.5 * footprint + 0.003
+        margin = cfg.face_margin_px * footprint + cfg.face_margin_m
         on_face = model.solid(fc.s - s0, fc.h - z0, margin, margin)
         res = fc.w - fc.nd / fc.D
         # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
