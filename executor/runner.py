@@ -149,6 +149,7 @@ class Runner:
         if self.events is not None:
             doc = {"t": round(self.clock.now(), 3), "event": event, **data}
             self.events.write(json.dumps(doc, default=_jsonable) + "\n")
+            self.events.flush()  # a line per state change: cheap, and `tail -f events.jsonl` follows the run
 
     def _show(self, task: TaskResult, state: str) -> None:
         if self.progress is None:
