@@ -261,7 +261,7 @@ def run(args: argparse.Namespace) -> dict:
                 calibs[ck] = calibrators[ck][0](frames[0], cal_frames, forks)  # type: ignore[misc]
             except Exception as exc:  # a failed calibration counts as a missed frame
                 calibs[ck] = exc
-        kind = ("rack" if spec.node.startswith("rack") else "floor", spec.ahead)
+        kind = ("rack" if spec.node.startswith("rack") else "floor", spec.ahead, spec.loaded)
         for name, lk, ck in runnable:
             a = acc[name]
             cal = calibs[ck]
@@ -307,8 +307,15 @@ def run(args: argparse.Namespace) -> dict:
         }
         # Split by distance: the far half carries most of the depth noise (sigma grows with z^2).
         mid = 0.5 * (args.ahead[0] + args.ahead[1])
-        for label, far in (("near", False), ("far", True)):
-            idx = [i for i, (_, d) in enumerate(a["kind"]) if (d >= mid) == far]
+        # ... and by load: a load hides the top deck, whose board edges refine the yaw of empty pallets.
+        groups = {
+            "near": [k[1] < mid for k in a["kind"]],
+            "far": [k[1] >= mid for k in a["kind"]],
+            "empty": [not k[2] for k in a["kind"]],
+            "loaded": [bool(k[2]) for k in a["kind"]],
+        }
+        for label, member in groups.items():
+            idx = [i for i, m in enumerate(member) if m]
             res[f"{label}_p95"] = {
                 "lateral_mm": _stats([a["lat"][i] for i in idx], 1e3, 2)["p95"],
                 "longitudinal_mm": _stats([a["lon"][i] for i in idx], 1e3, 2)["p95"],
