@@ -1,27 +1,37 @@
 """Train the shipped segmentation model (`perception/models/segmenter.onnx`) on frame bundles.
 
-Usage (torch comes with the optional `train` extra; CPU is enough)::
+Usage (torch and onnx come with the optional `train` extra; CPU is enough)::
 
     palletpilot segment dataset DATA_DIR --frames 900 --seed 0     # or sim.dataset.generate_dataset
-    python -m perception.train_segmentation DATA_DIR --out perception/models/segmenter.onnx --seed 0 \
-        [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--lr 4e-3] [--threads 2]
+    python -m perception.train_segmentation DATA_DIR [DATA_DIR ...] --out perception/models/segmenter.onnx \
+        --seed 0 [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--crop 384 288] \
+        [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--lr 4e-3] [--threads 2]
 
 The script only reads frame bundles (`perception.frames.load_bundle`, RGB plus labels); it never imports
 the simulator. Steps:
 
-1. Cache: every bundle's RGB is downscaled to the network's input size (320 x 240, `cv2.INTER_AREA`)
-   and its labels by nearest neighbour; the arrays are cached in `DATA_DIR/.segcache_320x240.npz`
-   (rebuilt when the file list changes).
-2. Train `SegNet` (a light encoder-decoder, 0.19 M parameters) with AdamW, a warm-up plus cosine
-   learning rate, class-weighted cross-entropy plus a soft-Dice term (label 255 ignored), horizontal
-   flips and photometric jitter (brightness, contrast, per-channel gain, gamma, noise, blur).
-   Deterministic for `--seed` and `--steps` (torch, numpy and the batch order are seeded; single
-   process). `--minutes M` picks the step count from the measured speed and prints it, so that run
-   is repeated with `--steps N`.
-3. Export to ONNX (opset 17) with input `rgb` (1, 3, H, W) float32, normalised, and output `logits`
-   (1, 10, H, W); the metadata (`metadata_props`) carries what `OnnxSegmenter` needs: `input_width`,
-   `input_height`, `mean`, `std` (JSON lists, 0..1 RGB scale), `classes` (JSON {id: name}),
-   `channel_order` ("RGB"), `layout` ("NCHW"), plus the training facts (`training`: seed, steps, epochs, frames, ...).
+1. Cache: every bundle's RGB and labels at the network's full input size (640 x 480; other sizes are
+   resized, area filter and nearest neighbour) go into `DATA_DIR/.segcache_640x480_{rgb,labels}.npy`
+   with the list of bundle files in `.segcache_640x480_files.json` (rebuilt when that list changes).
+   Training reads the caches memory-mapped, so thousands of frames need no extra RAM.
+2. Train `SegNet` (`build_model`: a light encoder-decoder, 0.42 M parameters, fully convolutional, no
+   global pooling, the row coordinate as an input of its coarsest level) on random full-resolution
+   crops (`--crop`, default 384 x 288; the network is then run on whole 640 x 480 frames). `--focus`
+   (default 0.75) of the crops are placed around a random pallet pixel (pallet_empty or pallet_full),
+   with the pallet in the lower part of the crop so that what stands on it is in view; the rest lie
+   anywhere. Loss: class-weighted cross-entropy (weights: pixel frequency ** -`--weight-power`,
+   default 0.5, normalised and clipped to 0.5..10; the two pallet classes share one weight) plus
+   `--dice` (default 0.5) times a soft-Dice term; label 255 ignored. Augmentation: horizontal flips and
+   photometric jitter (brightness, contrast, per-channel gain, gamma, noise, blur). AdamW with a
+   warm-up plus cosine learning rate. Deterministic for `--seed`, `--steps`, the data and `--threads`
+   (torch, numpy and the crop order are seeded; single process). `--minutes M` picks the step count
+   from the measured speed and prints it, so that run is repeated with `--steps N`.
+3. Export to ONNX (opset 17): input `rgb` (1, 3, 480, 640) float32, normalised; outputs `logits`
+   (1, 10, 480, 640) and `labels` (1, 480, 640) uint8, their per-pixel argmax (computed in the graph,
+   much faster than numpy). The metadata (`metadata_props`) carries what `OnnxSegmenter` needs:
+   `input_width`, `input_height`, `mean`, `std` (JSON lists, 0..1 RGB scale), `classes` (JSON {id: name}),
+   `channel_order` ("RGB"), `layout` ("NCHW"), `output` ("logits"), `labels_output` ("labels"), plus the
+   training facts (`training`: seed, steps, epochs, frames, crop, ...).
 4. With `--heldout`, evaluate the exported model with onnxruntime at full resolution
    (`perception.segmentation.evaluate_segmenter`) and print the per-class IoU.
 """
@@ -39,56 +49,125 @@ import numpy as np
 
 from perception.frames import SemanticClass, load_bundle
 
-INPUT_WIDTH = 320
-INPUT_HEIGHT = 240
+INPUT_WIDTH = 640
+INPUT_HEIGHT = 480
+CROP = (384, 288)
+"""Default training crop (width, height) in pixels of the full-resolution frames."""
 MEAN = (0.485, 0.456, 0.406)
 STD = (0.229, 0.224, 0.225)
 N_CLASSES = 10
 IGNORE = int(SemanticClass.UNLABELED)
 CLASS_NAMES = {int(c): c.name.lower() for c in SemanticClass if c != SemanticClass.UNLABELED}
+FOCUS_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL))
+"""Crops placed around a pixel of one of these classes (`--focus` of them)."""
+CHANNELS = (16, 32, 48, 64, 96)
+"""SegNet feature channels at 1/2, 1/4, 1/8, 1/16 and 1/32 of the input."""
 
 
 # -- data ---------------------------------------------------------------------------------------
 
 
 def load_cached(data_dir: Path, width: int = INPUT_WIDTH, height: int = INPUT_HEIGHT) -> tuple[np.ndarray, np.ndarray]:
-    """RGB (N, H, W, 3) uint8 and labels (N, H, W) uint8 of every bundle in `data_dir`, downscaled to the input size.
+    """RGB (N, H, W, 3) uint8 and labels (N, H, W) uint8 of every bundle in `data_dir` at the input size.
 
-    Bundles without RGB or labels are skipped. The result is cached next to the data.
+    Bundles without RGB or labels are skipped. The arrays are cached next to the data as .npy files
+    (rebuilt when the list of bundle files changes) and returned memory-mapped, read-only.
     """
-    files = sorted(data_dir.glob("*.npz"))
-    files = [f for f in files if not f.name.startswith(".")]
-    cache = data_dir / f".segcache_{width}x{height}.npz"
-    names = np.array([f.name for f in files])
-    if cache.exists():
-        with np.load(cache) as c:
-            if c["names"].shape == names.shape and np.all(c["names"] == names):
-                return c["rgb"], c["labels"]
-    rgbs, labels, kept = [], [], []
+    files = sorted(f for f in data_dir.glob("*.npz") if not f.name.startswith("."))
+    stem = f".segcache_{width}x{height}"
+    rgb_path, lab_path, key_path = (data_dir / f"{stem}_{s}" for s in ("rgb.npy", "labels.npy", "files.json"))
+    names = [f.name for f in files]
+    if key_path.exists() and rgb_path.exists() and lab_path.exists():
+        if json.loads(key_path.read_text()).get("files") == names:
+            return np.load(rgb_path, mmap_mode="r"), np.load(lab_path, mmap_mode="r")
+    key_path.unlink(missing_ok=True)
+    rgbs = np.lib.format.open_memmap(rgb_path, mode="w+", dtype=np.uint8, shape=(len(files), height, width, 3))
+    labs = np.lib.format.open_memmap(lab_path, mode="w+", dtype=np.uint8, shape=(len(files), height, width))
+    kept = []
     for i, f in enumerate(files):
         b = load_bundle(f)
         if b.rgb is None or b.labels is None:
             continue
-        rgbs.append(cv2.resize(b.rgb, (width, height), interpolation=cv2.INTER_AREA))
-        labels.append(cv2.resize(b.labels, (width, height), interpolation=cv2.INTER_NEAREST))
+        rgb, lab = b.rgb, b.labels
+        if rgb.shape[:2] != (height, width):
+            rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+            lab = cv2.resize(lab, (width, height), interpolation=cv2.INTER_NEAREST)
+        rgbs[len(kept)], labs[len(kept)] = rgb, lab
         kept.append(f.name)
         if (i + 1) % 500 == 0:
-            print(f"cached {i + 1}/{len(files)} bundles", flush=True)
-    if not rgbs:
+            print(f"{data_dir}: cached {i + 1}/{len(files)} bundles", flush=True)
+    if not kept:
         raise SystemExit(f"{data_dir}: no frame bundles with rgb and labels")
-    rgb_arr, lab_arr = np.stack(rgbs), np.stack(labels)
-    if len(kept) == len(files):
-        np.savez(cache, names=names, rgb=rgb_arr, labels=lab_arr)
-    return rgb_arr, lab_arr
+    rgbs.flush()
+    labs.flush()
+    del rgbs, labs
+    if len(kept) < len(files):  # drop the rows of the skipped bundles
+        for path in (rgb_path, lab_path):
+            tmp = path.with_name(path.name + ".tmp.npy")
+            np.save(tmp, np.load(path, mmap_mode="r")[: len(kept)])
+            tmp.replace(path)
+    key_path.write_text(json.dumps({"files": names, "kept": kept}))
+    return np.load(rgb_path, mmap_mode="r"), np.load(lab_path, mmap_mode="r")
 
 
-def class_weights(labels: np.ndarray) -> np.ndarray:
-    """Per-class loss weights (N_CLASSES,): inverse square root of the pixel frequency, normalised, clipped."""
-    counts = np.bincount(labels.ravel(), minlength=256)[:N_CLASSES].astype(float)
+class Frames:
+    """The frames of several data folders as one indexable set (memory-mapped caches, see `load_cached`)."""
+
+    def __init__(self, data_dirs: list[Path]) -> None:
+        self.parts = [load_cached(Path(d)) for d in data_dirs]
+        self.offsets = np.cumsum([0] + [len(rgb) for rgb, _ in self.parts])
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        part = int(np.searchsorted(self.offsets, i, side="right")) - 1
+        rgb, lab = self.parts[part]
+        j = i - int(self.offsets[part])
+        return rgb[j], lab[j]
+
+    def class_pixels(self, every: int = 8) -> np.ndarray:
+        """Pixel count per label value (256,) over every `every`-th frame (for the class weights)."""
+        counts = np.zeros(256, np.int64)
+        for i in range(0, len(self), every):
+            counts += np.bincount(self[i][1].ravel(), minlength=256)
+        return counts
+
+
+def class_weights(counts: np.ndarray, power: float = 0.5) -> np.ndarray:
+    """Per-class loss weights (N_CLASSES,) from pixel counts: frequency ** -power, normalised, clipped to 0.5..10.
+
+    Pallet-empty and pallet-full share one weight (from their joint frequency): the loss must not
+    favour either state of a pallet whose load is out of view.
+    """
+    counts = counts[:N_CLASSES].astype(float)
     freq = counts / max(counts.sum(), 1.0)
-    w = 1.0 / np.sqrt(np.maximum(freq, 1e-4))
+    pallet = list(FOCUS_CLASSES)
+    w = np.maximum(freq, 1e-4) ** -power
+    w[pallet] = max(float(freq[pallet].sum()), 1e-4) ** -power
     w /= np.average(w, weights=np.maximum(freq, 1e-12))
     return np.clip(w, 0.5, 10.0)
+
+
+def sample_crop(lab: np.ndarray, crop: tuple[int, int], focus: float, rng: np.random.Generator) -> tuple[slice, slice]:
+    """Rows and columns of a random `crop` (width, height) window of a (H, W) labels image.
+
+    With probability `focus` and when the frame has pallet pixels (`FOCUS_CLASSES`), the window holds a
+    random one of them, horizontally anywhere in its middle 80 % and vertically in its lower part
+    (25..90 % of the height) so that what stands on the pallet is in the crop; else it is anywhere.
+    """
+    H, W = lab.shape
+    cw, ch = min(crop[0], W), min(crop[1], H)
+    if rng.random() < focus:
+        ys, xs = np.nonzero((lab == FOCUS_CLASSES[0]) | (lab == FOCUS_CLASSES[1]))
+        if len(ys):
+            k = int(rng.integers(len(ys)))
+            x0 = int(xs[k]) - int(cw * rng.uniform(0.1, 0.9))
+            y0 = int(ys[k]) - int(ch * rng.uniform(0.25, 0.9))
+            x0, y0 = min(max(x0, 0), W - cw), min(max(y0, 0), H - ch)
+            return slice(y0, y0 + ch), slice(x0, x0 + cw)
+    x0, y0 = int(rng.integers(W - cw + 1)), int(rng.integers(H - ch + 1))
+    return slice(y0, y0 + ch), slice(x0, x0 + cw)
 
 
 def augment(rgb: np.ndarray, lab: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -110,12 +189,20 @@ def augment(rgb: np.ndarray, lab: np.ndarray, rng: np.random.Generator) -> tuple
 # -- model ----------------------------------------------------------------------------------------
 
 
-def build_model():  # -> torch.nn.Module (torch is imported lazily: the module imports without it)
+def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (torch is imported lazily)
     """The `SegNet` encoder-decoder: input (B, 3, H, W) normalised RGB, output (B, 10, H, W) logits.
 
-    Encoder at 1/2, 1/4, 1/8, 1/16 of the input with dilated context convolutions and a global pooling
-    branch; a decoder adding 1x1-projected skips back to 1/2; the 1/2-resolution logits are upsampled
-    bilinearly to the input size inside the network.
+    Fully convolutional (no global pooling, so crops in training and whole frames at run time see the
+    same operations). Encoder: a stride-2 stem to 1/2, then one stride-2 and one plain 3x3 convolution
+    per level to 1/4, 1/8, 1/16, and at 1/32 two more with dilations 2 and 4 (context: the receptive
+    field covers the cargo above a pallet). The 1/32 level also gets the row coordinate in the full
+    frame (-1 top .. 1 bottom; for training crops, offset by the crop's first row `top`), so that a
+    crop edge is not mistaken for the top of the image (a pallet cut off by the image top with no
+    cargo in view is more often empty; one cut off by a crop edge may well be loaded). Decoder: at
+    each level back to 1/2, the coarser features 1x1-projected, upsampled bilinearly, added to the
+    encoder's features and refined (a 3x3 convolution; depthwise-separable at 1/2). A 1x1 head gives
+    the 1/2-resolution logits, upsampled bilinearly to the input size inside the network. `channels`
+    are the widths at 1/2 .. 1/32 (multiples of 16 suit onnxruntime's blocked CPU kernels).
     """
     import torch
     from torch import nn
@@ -141,32 +228,46 @@ def build_model():  # -> torch.nn.Module (torch is imported lazily: the module i
     def proj(cin: int, cout: int) -> nn.Sequential:
         return nn.Sequential(nn.Conv2d(cin, cout, 1, bias=False), nn.BatchNorm2d(cout))
 
+    ch = tuple(int(c) for c in channels)
+
     class SegNet(nn.Module):
         def __init__(self) -> None:
             super().__init__()
-            self.stem = nn.Sequential(cbr(3, 16, 2), cbr(16, 16))  # 1/2
-            self.e2 = nn.Sequential(cbr(16, 32, 2), cbr(32, 32))  # 1/4
-            self.e3 = nn.Sequential(cbr(32, 48, 2), cbr(48, 48))  # 1/8
-            self.e4 = nn.Sequential(cbr(48, 64, 2), cbr(64, 64, dilation=2), cbr(64, 64, dilation=4))  # 1/16
-            self.ctx = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Conv2d(64, 64, 1), nn.ReLU(inplace=True))
-            self.p3, self.d3 = proj(64, 48), cbr(48, 48)
-            self.p2, self.d2 = proj(48, 32), cbr(32, 32)
-            self.p1, self.d1 = proj(32, 16), dws(16)
-            self.head = nn.Conv2d(16, N_CLASSES, 1)
+            self.stem = cbr(3, ch[0], 2)  # 1/2
+            levels = []
+            for i in range(1, len(ch)):
+                last = i == len(ch) - 1  # its input gets the row coordinate as one more channel
+                layers = [cbr(ch[i - 1] + int(last), ch[i], 2)]
+                if last:
+                    layers += [cbr(ch[i], ch[i], dilation=2), cbr(ch[i], ch[i], dilation=4)]
+                else:
+                    layers += [cbr(ch[i], ch[i])]
+                levels.append(nn.Sequential(*layers))
+            self.encoder = nn.ModuleList(levels)
+            self.projections = nn.ModuleList(proj(ch[i + 1], ch[i]) for i in range(len(ch) - 1))
+            self.decoder = nn.ModuleList((dws(ch[i]) if i == 0 else cbr(ch[i], ch[i])) for i in range(len(ch) - 1))
+            self.head = nn.Conv2d(ch[0], N_CLASSES, 1)
 
         @staticmethod
         def up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
             return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
-        def forward(self, x: torch.Tensor) -> torch.Tensor:
-            f1 = self.stem(x)
-            f2 = self.e2(f1)
-            f3 = self.e3(f2)
-            f4 = self.e4(f3)
-            f4 = f4 + self.ctx(f4)
-            y = self.d3(F.relu(self.up(self.p3(f4), f3) + f3))
-            y = self.d2(F.relu(self.up(self.p2(y), f2) + f2))
-            y = self.d1(F.relu(self.up(self.p1(y), f1) + f1))
+        def forward(self, x: torch.Tensor, top: torch.Tensor | None = None) -> torch.Tensor:
+            feats = [self.stem(x)]
+            for level in self.encoder[:-1]:
+                feats.append(level(feats[-1]))
+            f = feats[-1]
+            b, _, h, w = f.shape
+            # the row coordinate of the feature cells in the full frame, -1 (top) .. 1 (bottom)
+            rows = (torch.arange(h, dtype=x.dtype) + 0.5) * (x.shape[2] / h)
+            rows = rows.view(1, 1, h, 1)
+            if top is not None:  # crops: their first rows in the full frame
+                rows = rows + top.to(x.dtype).view(-1, 1, 1, 1)
+            coord = (rows * (2.0 / INPUT_HEIGHT) - 1.0).expand(b, 1, h, w)
+            feats.append(self.encoder[-1](torch.cat([f, coord], dim=1)))
+            y = feats[-1]
+            for i in range(len(feats) - 2, -1, -1):
+                y = self.decoder[i](F.relu(self.up(self.projections[i](y), feats[i]) + feats[i]))
             return self.up(self.head(y), x)
 
     return SegNet()
@@ -201,7 +302,7 @@ def learning_rate(step: int, total: int, peak: float) -> float:
 
 
 def train(
-    data_dir: Path,
+    data_dirs: list[Path],
     out: Path,
     seed: int = 0,
     steps: int | None = None,
@@ -209,10 +310,15 @@ def train(
     batch: int = 12,
     lr: float = 4e-3,
     threads: int = 2,
+    crop: tuple[int, int] = CROP,
+    focus: float = 0.75,
+    channels: tuple[int, ...] = CHANNELS,
+    weight_power: float = 0.5,
+    dice: float = 0.5,
 ) -> dict:
-    """Train on the bundles in `data_dir`, export the ONNX model to `out`; return the training facts.
+    """Train on the bundles in `data_dirs`, export the ONNX model to `out`; return the training facts.
 
-    The length of training is `steps` optimiser steps of `batch` frames, or, with `minutes` instead,
+    The length of training is `steps` optimiser steps of `batch` crops, or, with `minutes` instead,
     as many steps as fit that wall time: the time of steps 10..19 fixes the step count, printed and
     stored in the model metadata, so `--steps N` with the same seed and data repeats the run exactly
     (the learning-rate schedule depends only on N).
@@ -225,15 +331,17 @@ def train(
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
     rng = np.random.default_rng(seed)
-    rgb, labels = load_cached(data_dir)
-    n = len(rgb)
-    print(f"{n} frames from {data_dir} at {INPUT_WIDTH}x{INPUT_HEIGHT}", flush=True)
-    weights = torch.tensor(class_weights(labels), dtype=torch.float32)
+    frames = Frames(data_dirs)
+    n = len(frames)
+    print(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}", flush=True)
+    weights = torch.tensor(class_weights(frames.class_pixels(), weight_power), dtype=torch.float32)
     print("class weights", np.round(weights.numpy(), 2).tolist(), flush=True)
     mean = torch.tensor(MEAN).view(1, 3, 1, 1)
     std = torch.tensor(STD).view(1, 3, 1, 1)
 
-    model = build_model()
+    model = build_model(channels)
+    n_params = sum(p.numel() for p in model.parameters())
+    print(f"SegNet channels {list(channels)}: {n_params / 1e6:.3f} M parameters", flush=True)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     total = steps if steps is not None else 10**9
     t0 = time.time()
@@ -247,14 +355,21 @@ def train(
             order, cursor = rng.permutation(n), 0
         idx = order[cursor : cursor + batch]
         cursor += batch
-        pairs = [augment(rgb[i], labels[i], rng) for i in idx]
+        pairs, tops = [], []
+        for i in idx:
+            rgb, lab = frames[int(i)]
+            rows, cols = sample_crop(lab, crop, focus, rng)
+            pairs.append(augment(rgb[rows, cols], lab[rows, cols], rng))
+            tops.append(rows.start)
         x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
         x = (x - mean) / std
         y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
         for group in opt.param_groups:
             group["lr"] = learning_rate(step, total, lr)
-        logits = model(x)
-        loss = F.cross_entropy(logits, y, weight=weights, ignore_index=IGNORE) + 0.5 * _dice_loss(logits, y, N_CLASSES)
+        logits = model(x, torch.tensor(tops))
+        loss = F.cross_entropy(logits, y, weight=weights, ignore_index=IGNORE)
+        if dice > 0:
+            loss = loss + dice * _dice_loss(logits, y, N_CLASSES)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -268,7 +383,7 @@ def train(
             print(f"{per_step:.2f} s per step: training for {total} steps (--steps {total} repeats this run)")
         if step % 50 == 0:
             print(
-                f"step {step}/{total} epoch {step * batch / n:.1f} loss {np.mean(running[-50:]):.4f} "
+                f"step {step}/{total} epoch {step * batch / n:.2f} loss {np.mean(running[-50:]):.4f} "
                 f"lr {learning_rate(step, total, lr):.2e} {(time.time() - t0) / 60:.1f} min",
                 flush=True,
             )
@@ -277,9 +392,15 @@ def train(
         "seed": seed,
         "steps": step,
         "batch": batch,
+        "crop": list(crop),
+        "focus": focus,
         "epochs": round(step * batch / n, 2),
         "frames": n,
         "lr": lr,
+        "channels": list(channels),
+        "weight_power": weight_power,
+        "dice": dice,
+        "threads": threads,
         "train_minutes": round(minutes_used, 1),
     }
     export_onnx(model, out, facts)
@@ -287,16 +408,34 @@ def train(
 
 
 def export_onnx(model, out: Path, facts: dict) -> None:
-    """Export `model` (eval mode, 1 x 3 x H x W) to ONNX opset 17 with the metadata `OnnxSegmenter` reads."""
+    """Export `model` (eval mode, 1 x 3 x H x W) to ONNX opset 17 with the metadata `OnnxSegmenter` reads.
+
+    The graph has two outputs: `logits` (1, 10, H, W) float32 and `labels` (1, H, W) uint8, the argmax.
+    """
     import onnx
     import torch
+
+    class WithLabels(torch.nn.Module):
+        def __init__(self, net: torch.nn.Module) -> None:
+            super().__init__()
+            self.net = net
+
+        def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            logits = self.net(x)
+            return logits, logits.argmax(dim=1).to(torch.uint8)
 
     model.eval()
     out.parent.mkdir(parents=True, exist_ok=True)
     dummy = torch.zeros(1, 3, INPUT_HEIGHT, INPUT_WIDTH)
     tmp = out.with_suffix(".tmp.onnx")
     torch.onnx.export(
-        model, (dummy,), str(tmp), input_names=["rgb"], output_names=["logits"], opset_version=17, dynamo=False
+        WithLabels(model),
+        (dummy,),
+        str(tmp),
+        input_names=["rgb"],
+        output_names=["logits", "labels"],
+        opset_version=17,
+        dynamo=False,
     )
     proto = onnx.load(str(tmp))
     tmp.unlink()
@@ -309,6 +448,7 @@ def export_onnx(model, out: Path, facts: dict) -> None:
         "channel_order": "RGB",
         "layout": "NCHW",
         "output": "logits",
+        "labels_output": "labels",
         "training": json.dumps(facts),
     }
     del proto.metadata_props[:]
@@ -324,19 +464,39 @@ def export_onnx(model, out: Path, facts: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Command line: train, export, optionally evaluate on a held-out folder."""
     ap = argparse.ArgumentParser(prog="python -m perception.train_segmentation", description=__doc__.split("\n")[0])
-    ap.add_argument("data_dir", type=Path, help="folder of frame bundles (.npz) with rgb and labels")
+    ap.add_argument("data_dirs", type=Path, nargs="+", help="folders of frame bundles (.npz) with rgb and labels")
     ap.add_argument("--out", type=Path, default=Path("perception/models/segmenter.onnx"))
     ap.add_argument("--seed", type=int, default=0)
     length = ap.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, default=None, help="optimiser steps (default: 1500)")
     length.add_argument("--minutes", type=float, default=None, help="train for this wall time instead")
-    ap.add_argument("--batch", type=int, default=12)
+    ap.add_argument("--batch", type=int, default=12, help="crops per step")
+    ap.add_argument("--crop", type=int, nargs=2, default=list(CROP), metavar=("W", "H"), help="training crop size")
+    ap.add_argument("--focus", type=float, default=0.75, help="share of crops placed around a pallet pixel")
+    ap.add_argument("--channels", default=",".join(map(str, CHANNELS)), help="SegNet widths at 1/2 .. 1/32")
+    ap.add_argument("--weight-power", type=float, default=0.5, help="class weights: frequency ** -power")
+    ap.add_argument("--dice", type=float, default=0.5, help="weight of the soft-Dice loss term")
     ap.add_argument("--lr", type=float, default=4e-3)
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--heldout", type=Path, default=None, help="evaluate the exported model on these bundles")
     args = ap.parse_args(argv)
     steps = 1500 if args.steps is None and args.minutes is None else args.steps
-    facts = train(args.data_dir, args.out, args.seed, steps, args.minutes, args.batch, args.lr, args.threads)
+    channels = tuple(int(c) for c in args.channels.split(","))
+    facts = train(
+        args.data_dirs,
+        args.out,
+        args.seed,
+        steps,
+        args.minutes,
+        args.batch,
+        args.lr,
+        args.threads,
+        tuple(args.crop),
+        args.focus,
+        channels,
+        args.weight_power,
+        args.dice,
+    )
     print(json.dumps(facts), flush=True)
     if args.heldout is not None:
         from perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou

@@ -42,7 +42,8 @@ def sim_frame() -> FrameBundle:
 
 def test_shipped_model_is_small_and_has_its_metadata(segmenter):
     assert DEFAULT_MODEL.stat().st_size <= 10 * 1024 * 1024
-    assert segmenter.input_size == (320, 240)
+    assert segmenter.input_size == (640, 480)  # full D435 colour resolution: no resize for camera frames
+    assert segmenter.info.labels_output == "labels"
     assert segmenter.info.class_ids == tuple(range(10))
     assert segmenter.info.class_names[SemanticClass.PALLET_FULL] == "pallet_full"
     assert len(segmenter.info.mean) == 3 and len(segmenter.info.std) == 3
@@ -57,6 +58,33 @@ def test_shipped_model_segments_a_fresh_sim_frame(segmenter, sim_frame):
     assert iou[SemanticClass.DRIVABLE] > 0.9
     assert iou[SemanticClass.FORKS] > 0.9
     assert iou[SemanticClass.PALLET_EMPTY] > 0.6  # the misplaced empty pallet ahead
+
+
+def test_labels_output_is_the_argmax_of_the_logits(segmenter, sim_frame):
+    fast = segmenter.segment(sim_frame.rgb)  # the model's in-graph argmax (frame size = input size)
+    logits = segmenter.logits(sim_frame.rgb)
+    assert logits.shape == (10, 480, 640)
+    np.testing.assert_array_equal(fast, logits.argmax(axis=0).astype(np.uint8))
+
+
+def test_other_frame_sizes_go_through_the_logits(segmenter, sim_frame):
+    half = sim_frame.rgb[::2, ::2].copy()  # 320 x 240: resized up to the input, logits resized back
+    labels = segmenter.segment(half)
+    assert labels.shape == (240, 320) and labels.dtype == np.uint8
+    iou = iou_from_confusion(confusion(sim_frame.labels[::2, ::2], labels))
+    assert iou[SemanticClass.DRIVABLE] > 0.9 and iou[SemanticClass.FORKS] > 0.9
+
+
+def test_labels_output_must_exist(tmp_path):
+    onnx = pytest.importorskip("onnx")
+    proto = onnx.load(str(DEFAULT_MODEL))
+    for entry in proto.metadata_props:
+        if entry.key == "labels_output":
+            entry.value = "nope"
+    path = tmp_path / "badlabels.onnx"
+    onnx.save(proto, str(path))
+    with pytest.raises(PerceptionError, match=r"badlabels\.onnx: metadata labels_output 'nope' is not an output"):
+        OnnxSegmenter(path)
 
 
 def test_evaluate_segmenter_pools_pixels(sim_frame):
@@ -111,3 +139,18 @@ def test_ground_truth_segmenter_checks_the_size(sim_frame):
     seg = GroundTruthSegmenter(sim_frame.labels)
     with pytest.raises(PerceptionError, match="do not fit"):
         seg.segment(np.zeros((10, 10, 3), np.uint8))
+
+
+def test_training_crops_are_drawn_around_pallets():
+    from perception.train_segmentation import sample_crop
+
+    labels = np.zeros((480, 640), np.uint8)
+    labels[40:70, 500:600] = SemanticClass.PALLET_FULL
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        rows, cols = sample_crop(labels, (384, 288), 1.0, rng)
+        assert rows.stop - rows.start == 288 and cols.stop - cols.start == 384
+        assert 0 <= rows.start and rows.stop <= 480 and 0 <= cols.start and cols.stop <= 640
+        assert (labels[rows, cols] == SemanticClass.PALLET_FULL).any()
+    a = [sample_crop(labels, (384, 288), 0.5, np.random.default_rng(7)) for _ in range(2)]
+    assert a[0] == a[1]  # deterministic for the generator's seed
