@@ -356,6 +356,10 @@ class _Plane:
     def predict(self, d: np.ndarray) -> np.ndarray:
         return self.A * d[:, 0] + self.B * d[:, 1]
 
+    def point(self, cam: np.ndarray, s: float) -> np.ndarray:
+        """The point (forklift frame, z = 0) on the plane at lateral coordinate `s`, for the camera at `cam`."""
+        return self.n * (float(self.n @ cam) + self.D) + s * self.e
+
 
 @dataclass
 class _FaceCoords:
@@ -657,9 +661,7 @@ def _roi(
     h_range: tuple[float, float],
 ) -> tuple[slice, slice]:
     """Image rows and columns covering a rectangle on the face plane."""
-    corners = np.array(
-        [plane.n * (plane.n @ cam + plane.D) + s * plane.e + np.array([0, 0, h]) for s in s_range for h in h_range]
-    )
+    corners = np.array([plane.point(cam, s) + np.array([0, 0, h]) for s in s_range for h in h_range])
     if np.any(T_cf.inv().apply(corners)[:, 2] <= 0.05):
         raise PalletNotFound("no_entry_face", "the entry face would lie behind the camera")
     return _image_box(frame, T_cf, corners)
@@ -719,7 +721,7 @@ def _deck_yaw(
     deck_h = z0 + model.height
     if cam[2] < deck_h + cfg.deck_min_camera_height_m or frame.labels is None:
         return None
-    centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
+    centre = plane.point(cam, s0)
     centre[2] = deck_h
     margin = 0.1
     corners = np.array(
@@ -770,9 +772,9 @@ def _deck_yaw(
             return None
         wt = 1.0 / np.maximum(sigma_h[on], 1e-5) ** 2
         deck_h = float(np.sum(wt * h_meas[on]) / np.sum(wt))
-    z_deck = (deck_h - cam[2]) / rays.d[:, 2]
-    q = cam[:2] + rays.d[:, :2] * z_deck[:, None] - centre[:2]
-    q, w, z_deck, d = q[idx], rays.w[idx], z_deck[idx], rays.d[idx]
+    d, w = d_all, w_all
+    z_deck = (deck_h - cam[2]) / d[:, 2]
+    q = cam[:2] + d[:, :2] * z_deck[:, None] - centre[:2]
     thick = model.top_boards_thickness
     w_low = 1.0 / ((deck_h - thick - cam[2]) / d[:, 2])  # a board's thickness below the deck
     sigma_face = math.sqrt(max(_yaw_variance(plane), 1e-12))
@@ -942,7 +944,7 @@ def estimate_pallet(
         # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
         # the forklift origin, so a new plane (another yaw) needs it re-expressed, or the pallet model
         # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
-        centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
+        centre = plane.point(cam, s0)
         for _ in range(3):
             use = on_face & (np.abs(res) < trunc * sigma)
             if use.sum() < cfg.min_face_pixels:
@@ -1004,7 +1006,7 @@ def estimate_pallet(
     # 5. The top deck's board edges, where the camera sees the deck: turn the plane about the face centre.
     deck = _deck_yaw(frame, T_cf, valid, model, plane, s0, z0, sigma, cfg) if cfg.deck_yaw else None
     if deck is not None:
-        centre = plane.n * (float(plane.n @ cam) + plane.D) + s0 * plane.e
+        centre = plane.point(cam, s0)
         n_new = np.array([math.cos(deck.psi), math.sin(deck.psi), 0.0])
         D_new = float(n_new @ (centre - cam))
         plane = _Plane(n_new[0] / D_new, n_new[1] / D_new, plane.cov)
@@ -1012,9 +1014,7 @@ def estimate_pallet(
 
     # Pose and spread.
     psi, D = plane.psi, plane.D
-    n, e = plane.n, plane.e
-    rho = float(n @ cam) + D
-    origin = rho * n + s0 * e
+    origin = plane.point(cam, s0)
     T_fp = SE3(Rotation.from_euler("z", psi), (origin[0], origin[1], z0))
     sx, sy, syaw = _spread(plane, cam, s0, sigma_s, cov3)
     if deck is not None:
@@ -1101,7 +1101,7 @@ def _spread(
     the plane fit's covariance (`cov3`, of psi, D and s0, when the joint fit ran).
     """
     n, e = plane.n, plane.e
-    origin = (float(n @ cam) + plane.D) * n + s0 * e
+    origin = plane.point(cam, s0)
     u = (origin - cam) / float(np.linalg.norm(origin - cam))  # unit ray to the origin
     lam = float(np.linalg.norm(origin - cam))  # 1 / lam = A u_x + B u_y on the plane
     sigma_lam = lam * lam * math.sqrt(max(float(u[:2] @ plane.cov @ u[:2]), 0.0))
@@ -1133,13 +1133,12 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     if len(estimates) == 1:
         return estimates[0]
 
-    def weights(values: list[float]) -> np.ndarray:
-        w = 1.0 / np.maximum(np.asarray(values), 1e-9) ** 2
-        return w / w.sum()
-
-    wx = weights([e.spread.x_m for e in estimates])
-    wy = weights([e.spread.y_m for e in estimates])
-    wyaw = weights([e.spread.yaw_rad for e in estimates])
+    # Precisions (1 / sigma^2) per frame of x, y and yaw; normalised, they are the weights.
+    px, py, pyaw = (
+        1.0 / np.maximum(np.array([getattr(e.spread, k) for e in estimates]), 1e-9) ** 2
+        for k in ("x_m", "y_m", "yaw_rad")
+    )
+    wx, wy, wyaw = px / px.sum(), py / py.sum(), pyaw / pyaw.sum()
 
     def fuse(poses: list[SE3], wx: np.ndarray, wy: np.ndarray, wyaw: np.ndarray) -> SE3:
         t = np.array([p.t for p in poses])
@@ -1158,14 +1157,7 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
         equal = np.full(len(estimates), 1.0 / len(estimates))
         T_wp = fuse([T @ T_fp for T in T_wf], equal, equal, equal)
 
-    def combined(values: list[float]) -> float:
-        return float(1.0 / math.sqrt(np.sum(1.0 / np.maximum(np.asarray(values), 1e-9) ** 2)))
-
-    spread = PalletSpread(
-        combined([e.spread.x_m for e in estimates]),
-        combined([e.spread.y_m for e in estimates]),
-        combined([e.spread.yaw_rad for e in estimates]),
-    )
+    spread = PalletSpread(*(float(1.0 / math.sqrt(p.sum())) for p in (px, py, pyaw)))
     first = estimates[0]
     return PalletEstimate(
         T_forklift_pallet=T_fp,
