@@ -241,27 +241,27 @@ def run(args: argparse.Namespace) -> dict:
     need_cal = any(ck == "estimated" for _, _, ck in runnable)
     per = max(1, args.frames_per_estimate)
     acc: dict[str, dict[str, list]] = {
-        name: {k: [] for k in ("lat", "lon", "yaw", "z", "ms", "fail", "kind", "fused", "fused_kind")}
-        for name, _, _ in runnable
+        name: {k: [] for k in ("lat", "lon", "yaw", "z", "ms", "fail", "kind", "fused")} for name, _, _ in runnable
     }
     render_s = 0.0
     from perception.specs import load_forks
 
     forks = load_forks(MISSIONS / "forks.yaml")
+    label_kinds_used = {lk for _, lk, _ in runnable}
+    cal_kinds_used = {ck for _, _, ck in runnable}
     for spec in specs:
         t0 = time.perf_counter()
         frames, cal_frames = render_frames(spec, per, args.width, calibration_frames=2 if need_cal else 0)
         render_s += time.perf_counter() - t0
         T_true = SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"])
-        kinds = {lk for _, lk, _ in runnable}
-        labelled = {lk: [labellers[lk][0](f) for f in frames] for lk in kinds}  # type: ignore[misc]
+        labelled = {lk: [labellers[lk][0](f) for f in frames] for lk in label_kinds_used}  # type: ignore[misc]
         calibs: dict[str, Calibration | Exception] = {}
-        for ck in {ck for _, _, ck in runnable}:
+        for ck in cal_kinds_used:
             try:
                 calibs[ck] = calibrators[ck][0](frames[0], cal_frames, forks)  # type: ignore[misc]
             except Exception as exc:  # a failed calibration counts as a missed frame
                 calibs[ck] = exc
-        kind = ("rack" if spec.node.startswith("rack") else "floor", spec.ahead, spec.loaded)
+        kind = (spec.ahead, spec.loaded)
         for name, lk, ck in runnable:
             a = acc[name]
             cal = calibs[ck]
@@ -283,7 +283,6 @@ def run(args: argparse.Namespace) -> dict:
                 a["kind"].append(kind)
             if found:
                 a["fused"].append(_errors(T_true, fuse_estimates(found).T_forklift_pallet))
-                a["fused_kind"].append(kind)
     for name, _, _ in runnable:
         a = acc[name]
         n_ok = len(a["lat"])
@@ -309,10 +308,10 @@ def run(args: argparse.Namespace) -> dict:
         mid = 0.5 * (args.ahead[0] + args.ahead[1])
         # ... and by load: a load hides the top deck, whose board edges refine the yaw of empty pallets.
         groups = {
-            "near": [k[1] < mid for k in a["kind"]],
-            "far": [k[1] >= mid for k in a["kind"]],
-            "empty": [not k[2] for k in a["kind"]],
-            "loaded": [bool(k[2]) for k in a["kind"]],
+            "near": [ahead < mid for ahead, _ in a["kind"]],
+            "far": [ahead >= mid for ahead, _ in a["kind"]],
+            "empty": [not loaded for _, loaded in a["kind"]],
+            "loaded": [loaded for _, loaded in a["kind"]],
         }
         for label, member in groups.items():
             idx = [i for i, m in enumerate(member) if m]
