@@ -195,12 +195,34 @@ def _stats(values: list[float], scale: float, digits: int) -> dict[str, float | 
     }
 
 
+def _comma_list(*allowed: str) -> Callable[[str], list[str]]:
+    """An argparse type: a comma list of `allowed` words (a bad word is a one-line usage error)."""
+
+    def parse(text: str) -> list[str]:
+        words = [w.strip() for w in text.split(",") if w.strip()]
+        for w in words:
+            if w not in allowed:
+                raise argparse.ArgumentTypeError(f"unknown '{w}' ({', '.join(allowed)})")
+        return words
+
+    return parse
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--labels", default="gt", help="comma list of gt, onnx")
-    parser.add_argument("--calibration", default="true", help="comma list of true, estimated")
+    parser.add_argument("--labels", type=_comma_list("gt", "onnx"), default="gt", help="comma list of gt, onnx")
+    parser.add_argument(
+        "--calibration", type=_comma_list("true", "estimated"), default="true", help="comma list of true, estimated"
+    )
     parser.add_argument("--width", type=int, default=640, choices=(640, 848))
     parser.add_argument("--lateral", type=float, default=0.35, help="max lateral misplacement (m)")
     parser.add_argument("--longitudinal", type=float, default=0.05, help="max misplacement along the node (m)")
@@ -208,7 +230,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ahead", type=float, nargs=2, default=(1.2, 3.0), help="entry face ahead of the tips (m)")
     parser.add_argument(
         "--frames-per-estimate",
-        type=int,
+        type=_positive_int,
         default=3,
         help="frames per standpoint, fused as the Pickup does (per-frame figures use every frame)",
     )
@@ -216,14 +238,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     """Render the frames, run every requested case and return the figures."""
-    label_kinds = [k.strip() for k in args.labels.split(",") if k.strip()]
-    cal_kinds = [k.strip() for k in args.calibration.split(",") if k.strip()]
-    for k in label_kinds:
-        if k not in ("gt", "onnx"):
-            raise ValueError(f"bench pallet: --labels: unknown '{k}' (gt, onnx)")
-    for k in cal_kinds:
-        if k not in ("true", "estimated"):
-            raise ValueError(f"bench pallet: --calibration: unknown '{k}' (true, estimated)")
+    label_kinds, cal_kinds = args.labels, args.calibration
     labellers = {k: _labeller(k) for k in label_kinds}
     calibrators = {k: _calibrator(k) for k in cal_kinds}
     cases: dict[str, dict[str, Any]] = {}
@@ -239,7 +254,7 @@ def run(args: argparse.Namespace) -> dict:
                 cases[name] = {"available": True}
     specs = frame_specs(args.frames, args.seed, args.lateral, args.longitudinal, args.yaw_deg, tuple(args.ahead))
     need_cal = any(ck == "estimated" for _, _, ck in runnable)
-    per = max(1, args.frames_per_estimate)
+    per = args.frames_per_estimate
     acc: dict[str, dict[str, list]] = {
         name: {k: [] for k in ("lat", "lon", "yaw", "z", "ms", "fail", "kind", "fused")} for name, _, _ in runnable
     }

@@ -89,3 +89,17 @@ def test_bench_pallet_reports_frames_and_fused_estimates(capsys):
     assert case["detection_rate"] == 1.0 and case["per_estimate"]["estimates"] == 2
     # Small errors, both per frame and fused: the figures come from real estimates against the truth.
     assert 0 < case["lateral_mm"]["max"] < 10 and 0 < case["per_estimate"]["yaw_deg"]["max"] < 1.0
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--labels", "foo"], "argument --labels: unknown 'foo' (gt, onnx)"),
+        (["--frames-per-estimate", "0"], "argument --frames-per-estimate: must be at least 1, got 0"),
+    ],
+)
+def test_bench_pallet_bad_option_is_one_line(option, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench", "pallet", *option])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(message)
