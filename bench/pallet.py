@@ -18,7 +18,9 @@ yaw errors (and of the pocket height error), measured in the true pallet frame
 (`T_true^-1 @ T_estimated`); runtime of `estimate_pallet` alone (median, p95; segmentation and
 calibration excluded). The issue's goals apply to these per-frame figures. `per_estimate` gives the
 same errors for the standpoint's frames fused by `perception.pallet.fuse_estimates`, which is what
-the Pickup acts on. Seeded: the same `--seed` gives the same frames and figures (runtimes aside).
+the Pickup acts on. With ONNX labels, `segmentation` gives the model's per-class IoU on these frames
+against the simulator's exact labels (`perception.segmentation.SegmentationScore`). Seeded: the same
+`--seed` gives the same frames and figures (runtimes aside).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from geometry import SE2, SE3
 from perception.calibration_io import Calibration
 from perception.frames import FrameBundle
 from perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
+from perception.segmentation import SegmentationScore
 from sim.scenario import Scenario
 from sim.simulator import Simulator
 
@@ -259,6 +262,7 @@ def run(args: argparse.Namespace) -> dict:
         name: {k: [] for k in ("lat", "lon", "yaw", "z", "ms", "fail", "kind", "fused")} for name, _, _ in runnable
     }
     render_s = 0.0
+    seg_score = SegmentationScore()
     from perception.specs import load_forks
 
     forks = load_forks(MISSIONS / "forks.yaml")
@@ -270,6 +274,9 @@ def run(args: argparse.Namespace) -> dict:
         render_s += time.perf_counter() - t0
         T_true = SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"])
         labelled = {lk: [labellers[lk][0](f) for f in frames] for lk in label_kinds_used}  # type: ignore[misc]
+        if "onnx" in labelled:
+            for frame, seg_frame in zip(frames, labelled["onnx"], strict=True):
+                seg_score.add(frame.truth["labels_true"], seg_frame.labels)
         calibs: dict[str, Calibration | Exception] = {}
         for ck in cal_kinds_used:
             try:
@@ -298,7 +305,7 @@ def run(args: argparse.Namespace) -> dict:
                 a["kind"].append(kind)
             if found:
                 a["fused"].append(_errors(T_true, fuse_estimates(found).T_forklift_pallet))
-    for name, _, _ in runnable:
+    for name, lk, _ in runnable:
         a = acc[name]
         n_ok = len(a["lat"])
         fails: dict[str, int] = {}
@@ -348,6 +355,8 @@ def run(args: argparse.Namespace) -> dict:
                 key: {"goal": goal, "met": _value(res, key) is not None and _value(res, key) <= goal}
                 for key, goal in GOALS.items()
             }
+        if lk == "onnx":
+            res["segmentation"] = seg_score.result()
         cases[name] = res
     return {
         "standpoints": len(specs),

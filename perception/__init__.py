@@ -13,7 +13,9 @@ Public API:
   labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `PalletNotFound` (reason);
   `perception.alignment`: `AlignmentTolerances`, `check_alignment` (against the pallet node).
 - `perception.segmentation`: `SegmentationService`, `OnnxSegmenter` (the shipped `DEFAULT_MODEL`),
-  `GroundTruthSegmenter`, `evaluate_segmenter`; `perception.train_segmentation` trains the model.
+  `GroundTruthSegmenter`, `evaluate_segmenter`, `SegmentationScore` (pooled per-class IoU),
+  `load_hidden_mask` (pallets cut off where their load would be); `perception.train_segmentation`
+  trains the model.
 - `perception.realsense`: `RealSenseSource` (live D435/D435i), `RecordingSource` (.db3 recordings).
 - `PerceptionError`: every perception failure.
 """

@@ -20,7 +20,8 @@ Noise (`CameraNoise`), all drawn from the `numpy.random.Generator` passed in:
 - flying pixels: at depth edges a share of pixels takes a depth between foreground and background;
 - dropouts at `invalid_rate`, depth quantised to `depth_unit_m` (1 mm, the Z16 unit);
 - no depth closer than `min_depth_m` (0.28 m) or beyond `max_depth_m`;
-- optional label noise: each class's boundary dilated or eroded by up to `label_noise_px` pixels;
+- optional label noise: each class's boundary dilated or eroded by up to `label_noise_px` pixels (the
+  exact labels stay in the bundle's truth as `labels_true`);
 - RGB sensor noise and per-frame lighting variation.
 """
 
@@ -387,7 +388,8 @@ class RaycastRenderer:
 
         `dynamic` meshes (world frame) join the static world for this frame. `noise` defaults to an
         ideal camera; `rng` is required whenever noise or lighting variation draws random numbers.
-        `fork_height` (m) and `truth` (keys ending in `_true`) are passed through to the bundle.
+        `fork_height` (m) and `truth` (keys ending in `_true`) are passed through to the bundle; with
+        label noise, the exact labels are added to the truth as `labels_true`.
         """
         noise = noise or CameraNoise.off()
         needs_rng = noise.depth_noise or noise.label_noise or noise.rgb_sigma > 0 or noise.lighting_variation
@@ -414,7 +416,9 @@ class RaycastRenderer:
         labels = np.take(sc.classes, prim).reshape(h, w)
         rgb = self._shade(T_world_camera, prim, hits["primitive_uvs"].numpy(), rc, sc, lighting, noise, rng)
         depth = self._measure_depth(z, hit, camera, rc, noise, rng)
+        truth = dict(truth or {})
         if noise.label_noise:
+            truth["labels_true"] = labels  # the exact labels, to score a segmenter against
             labels = perturb_labels(labels, noise.label_noise_px, rng)
         return FrameBundle(
             depth=depth.reshape(h, w),
@@ -422,7 +426,7 @@ class RaycastRenderer:
             labels=labels,
             rgb=rgb.reshape(h, w, 3),
             fork_height=fork_height,
-            truth=dict(truth or {}),
+            truth=truth,
         )
 
     @staticmethod

@@ -11,11 +11,13 @@ from perception.segmentation import (
     DEFAULT_MODEL,
     GroundTruthSegmenter,
     OnnxSegmenter,
+    SegmentationScore,
     SegmentationService,
     confusion,
     ensure_labels,
     evaluate_segmenter,
     iou_from_confusion,
+    load_hidden_mask,
 )
 from sim.scenario import load_scenario
 from sim.simulator import Simulator
@@ -92,6 +94,48 @@ def test_evaluate_segmenter_pools_pixels(sim_frame):
     assert result["frames"] == 1
     assert result["iou"]["drivable"] == 1.0 and result["iou"]["forks"] == 1.0
     assert result["iou"]["other_vehicle"] is None
+
+
+def _pallets_scene() -> np.ndarray:
+    """Labels with three pallets: one cut off by the top edge, one under its load, one inside the image."""
+    labels = np.full((60, 80), SemanticClass.DRIVABLE, dtype=np.uint8)
+    labels[0:10, 5:25] = SemanticClass.PALLET_EMPTY  # cut off at the top: a load could stand on it unseen
+    labels[0:8, 30:50] = SemanticClass.CARGO  # loaded pallet whose load is in view ...
+    labels[8:14, 30:50] = SemanticClass.PALLET_FULL  # ... cut off at the top at its side
+    labels[0:12, 55:75] = SemanticClass.PALLET_FULL  # loaded pallet whose load is out of view
+    labels[30:40, 20:40] = SemanticClass.PALLET_EMPTY  # fully in view, the space above it too
+    labels[13, 30:50] = SemanticClass.PALLET_FULL
+    labels[0:14, 50] = SemanticClass.PALLET_FULL  # joins the middle pallet to the top row
+    return labels
+
+
+def test_load_hidden_mask_marks_pallets_cut_off_where_their_load_would_be():
+    labels = _pallets_scene()
+    hidden = load_hidden_mask(labels)
+    assert hidden[0:10, 5:25].all()  # empty pallet at the top edge
+    assert hidden[0:12, 55:75].all()  # loaded pallet whose load is out of view
+    assert not hidden[8:14, 30:51].any()  # the load next to it shows the pallet is loaded
+    assert not hidden[30:40, 20:40].any()  # inside the image
+    assert not hidden[labels == SemanticClass.CARGO].any()
+
+
+def test_segmentation_score_either_pallet_class_counts_only_where_the_load_is_hidden():
+    truth = _pallets_scene()
+    pred = truth.copy()
+    pred[0:10, 5:25] = SemanticClass.PALLET_FULL  # wrong class on the hidden-load pallet
+    pred[30:40, 20:30] = SemanticClass.PALLET_FULL  # wrong class on the pallet in full view
+    score = SegmentationScore()
+    score.add(truth, pred)
+    result = score.result()
+    empty_px = int((truth == SemanticClass.PALLET_EMPTY).sum())
+    assert result["iou"]["pallet_empty"] == pytest.approx(round(100 / empty_px, 4))  # 100 px right of 400
+    assert result["iou_load_hidden_either"]["pallet_empty"] == pytest.approx(round(300 / 400, 4))
+    assert result["iou"]["drivable"] == result["iou_load_hidden_either"]["drivable"] == 1.0
+    assert result["load_hidden_share"]["pallet_empty"] == pytest.approx(0.5)
+    pred[0:10, 5:25] = SemanticClass.DRIVABLE  # not a pallet at all: wrong under both scores
+    score = SegmentationScore()
+    score.add(truth, pred)
+    assert score.result()["iou_load_hidden_either"]["pallet_empty"] == pytest.approx(round(100 / 400, 4))
 
 
 def test_missing_model_file_is_one_clear_error(tmp_path):
