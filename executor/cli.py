@@ -6,7 +6,9 @@ Commands (exit 0 on success, 2 on bad input with one line per problem on stderr,
 - `palletpilot plan MAP FROM TO [--json]`
 - `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]`
   (exit 0 success, 1 mission failed, 2 bad input); `palletpilot mission diagram TASK [--out FILE]`
-- `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]`
+- `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]
+  [--pallet eur|FILE.yaml]`; it also checks that the calibrated mount shows a pallet's entry face and
+  load at the Pickup's distances (`perception.view`), with a warning on stderr when it does not
 - `palletpilot capture --out DIR [--count N] [--serial S]`, `palletpilot capture --recording FILE --out DIR`
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
 - `palletpilot bench NAME [--json] [bench options]` (see `bench/`)
@@ -116,12 +118,16 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate T_forklift_camera from frame bundles of the forks and the floor."""
     from perception.calibration import calibrate
     from perception.frames import load_bundle
-    from perception.specs import load_forks
+    from perception.specs import load_forks, pallet_type
+    from perception.view import pickup_view
 
     forks = load_forks(args.forks)
+    pallet = pallet_type(args.pallet)
     frames = _labelled([load_bundle(p) for p in args.frames], args.model)
     calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
-    doc = calibration.to_json()
+    h, w = frames[0].depth.shape
+    view = pickup_view(calibration.T_forklift_camera, frames[0].K, (w, h), forks, pallet)
+    doc = {**calibration.to_json(), "pickup_view": view.to_json()}
     if args.out:
         Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
     if args.json:
@@ -135,6 +141,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"roll {doc['roll_about_optical_deg']:7.3f} deg"
         )
         print("  quality   " + ", ".join(f"{k} {v}" for k, v in calibration.quality.items()))
+        if not view.problems():
+            lo, hi = view.ahead_m
+            print(f"  pickup    the entry face and a load are in view {lo:.2f}-{hi:.2f} m ahead of the fork tips")
+    for problem in view.problems():  # the calibration is good; the mount may still not suit the Pickup
+        print(f"warning: camera mount: {problem}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -265,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--json", action="store_true", help="print the calibration as JSON")
     cal.add_argument("--out", help="also write the JSON to this file (for estimate-pallet --calibration)")
     cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
+    cal.add_argument("--pallet", default="eur", help="pallet type for the pickup view check: eur or a YAML file")
     cal.set_defaults(func=cmd_calibrate)
 
     sim = sub.add_parser("sim", help="the simulated warehouse")

@@ -18,13 +18,7 @@ import math
 
 from perception.errors import PerceptionError
 from perception.frames import FrameBundle
-from perception.specs import PalletType, load_pallet_type
-
-
-def _pallet_type(name: str) -> PalletType:
-    if name.lower() in ("eur", "epal", "eur/epal"):
-        return PalletType.eur()
-    return load_pallet_type(name)
+from perception.specs import pallet_type
 
 
 def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
@@ -51,7 +45,7 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     frame = _with_labels(load_bundle(args.frame), args.frame)
     calibration = load_calibration(args.calibration)
     try:
-        estimate = estimate_pallet(frame, calibration, _pallet_type(args.pallet))
+        estimate = estimate_pallet(frame, calibration, pallet_type(args.pallet))
     except PalletNotFound as exc:  # name the frame in the one-line message
         raise PalletNotFound(exc.reason, exc.detail, where=args.frame) from None
     doc = estimate.to_json()

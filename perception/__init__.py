@@ -4,11 +4,13 @@ Public API:
 - `perception.frames`: `FrameBundle` (depth m, K, labels, rgb, fork_height, simulator-only `truth`),
   `save_bundle`, `load_bundle` (.npz, ARCHITECTURE.md), `SemanticClass` (the paper's ten ids, 255 unlabeled).
 - `perception.specs`: `ForkGeometry` / `load_forks` (forks file), `PalletType` (EUR/EPAL by default, its
-  boards and blocks as boxes in the pallet frame), `pallet_pose_at_node` / `node_pose_for_pallet`
-  (pallet node <-> `T_world_pallet`, entry face `ENTRY_GAP_M` ahead of the fork heels).
+  boards and blocks as boxes in the pallet frame; `pallet_type("eur" or FILE.yaml)`),
+  `pallet_pose_at_node` / `node_pose_for_pallet` (pallet node <-> `T_world_pallet`, entry face
+  `ENTRY_GAP_M` ahead of the fork heels).
 - `perception.calibration`: `calibrate` (`T_forklift_camera` from fork and floor frames; `model` and
   `paper` methods), `Calibrator` (keeps the last good calibration), `CalibrationError`;
-  `perception.calibration_io`: `Calibration` and its JSON.
+  `perception.calibration_io`: `Calibration` and its JSON; `perception.view`: `pickup_view` (does a
+  mount show the entry face and a load at the Pickup's distances).
 - `perception.pallet`: `estimate_pallet` (`T_forklift_pallet` / `T_world_pallet` with a spread from one
   labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `PalletNotFound` (reason);
   `perception.alignment`: `AlignmentTolerances`, `check_alignment` (against the pallet node).

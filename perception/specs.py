@@ -221,6 +221,13 @@ def load_pallet_type(path: str | Path) -> PalletType:
     return load_yaml_model(path, PalletType, PerceptionError)
 
 
+def pallet_type(name: str) -> PalletType:
+    """A pallet type by name (`eur`, `epal`, `eur/epal`: the EUR/EPAL pallet) or from a YAML file path."""
+    if name.lower() in ("eur", "epal", "eur/epal"):
+        return PalletType.eur()
+    return load_pallet_type(name)
+
+
 ENTRY_GAP_M = 0.05
 """At a pallet node the pallet's entry face stands this far ahead of the fork heels (forklift x = 0),
 so the fork tips reach `tip_x - ENTRY_GAP_M` into the pallet."""

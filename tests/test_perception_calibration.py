@@ -138,8 +138,13 @@ def test_cli_calibrate(tmp_path, capsys):
     path = save_bundle(tmp_path / "f.npz", frame)
     forks = str(MISSIONS / "forks.yaml")
     assert main(["calibrate", str(path), "--forks", forks, "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert {"T_forklift_camera", "xyz_m", "rpy_deg", "method", "quality"} <= set(doc)
+    captured = capsys.readouterr()
+    doc = json.loads(captured.out)
+    assert {"T_forklift_camera", "xyz_m", "rpy_deg", "method", "quality", "pickup_view"} <= set(doc)
+    # A 25 deg mount 0.45 m up sees the whole entry face but loses a load on a far pallet: one warning.
+    assert doc["pickup_view"]["entry_face_ok"] and not doc["pickup_view"]["load_ok"]
+    warnings = captured.err.strip().splitlines()
+    assert len(warnings) == 1 and warnings[0].startswith("warning: camera mount: a load is in the image only")
     assert doc["method"] == "model"
     assert np.allclose(doc["xyz_m"], truth.t, atol=5e-4)
     assert doc["tilt_deg"] == pytest.approx(25.0, abs=0.05)
