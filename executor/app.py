@@ -15,6 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
+
+from control.mpc import MpcConfig, MpcFollower
 from control.vehicle import load_vehicle
 from executor.mission import Mission, load_mission, validate_mission
 from executor.ports import LocalPerception
@@ -105,6 +108,9 @@ def run_simulated(
             sim.forks,
             scenario.start,
             settings=settings,
+            # Simulated time waits for each solve: no wall-clock deadline, so the machine's load cannot
+            # change a seeded run. The solve times are in the report (`solve_ms`).
+            follower=MpcFollower(vehicle, MpcConfig(solve_deadline_s=None)),
             events=events,
             progress=progress,
         )
@@ -127,6 +133,7 @@ def run_simulated(
                 "seed": sim.seed,
                 "adapt": adapt,
                 "simulated_s": round(clock.now(), 2),
+                "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
                 "collisions": sim.collisions,
                 "pallets_true": [
                     {
@@ -141,3 +148,15 @@ def run_simulated(
             },
         )
     return SimRun(success, runner, sim, summary(success, runner.results), report)
+
+
+def _solve_ms(solve_s: list[float]) -> dict[str, float | None]:
+    """Median, p99 and max controller solve time (ms, wall clock) of a run."""
+    if not solve_s:
+        return {"median": None, "p99": None, "max": None}
+    ms = np.asarray(solve_s) * 1e3
+    return {
+        "median": round(float(np.median(ms)), 2),
+        "p99": round(float(np.percentile(ms, 99)), 2),
+        "max": round(float(ms.max()), 2),
+    }
