@@ -283,7 +283,8 @@ class SegmentationScore:
     """Per-class IoU of predictions against true labels, pixels pooled over every `add`ed frame.
 
     `result()` gives `{"frames", "iou": {name: IoU or None}, "pixels": {name: truth pixel count},
-    "iou_load_hidden_either": {name: IoU or None}, "load_hidden_share": {pallet class: share}}`.
+    "predicted_pixels": {name: count}, "iou_load_hidden_either": {name: IoU or None},
+    "load_hidden_share": {pallet class: share}}`.
     `iou` is the strict score. `iou_load_hidden_either` scores the same predictions, except that on
     pallets whose load the image cannot show (`load_hidden_mask`) either pallet class counts as
     right; `load_hidden_share` is the share of each pallet class's true pixels on such pallets.
@@ -317,6 +318,7 @@ class SegmentationScore:
             "frames": self.frames,
             "iou": named(iou_from_confusion(self.cm)),
             "pixels": {names[k]: int(truth_px[k]) for k in range(10)},
+            "predicted_pixels": {names[k]: int(self.cm[:, k].sum()) for k in range(10)},
             "iou_load_hidden_either": named(iou_from_confusion(self.cm_either)),
             "load_hidden_share": {
                 names[k]: round(float(self.hidden_px[k] / truth_px[k]), 4) if truth_px[k] else None
