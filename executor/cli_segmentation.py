@@ -1,7 +1,7 @@
 """`palletpilot segment ...`: segmentation datasets, evaluation and timing (wired in by `executor.cli`).
 
-- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K]`: render simulator frame
-  bundles for training or evaluation (`sim.dataset.generate_dataset`);
+- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup]`: render
+  simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`);
 - `palletpilot segment eval DATA_DIR [--model M.onnx] [--frames N] [--json]`: per-class IoU of the
   ONNX model on labelled bundles at full resolution (`perception.segmentation.evaluate_segmenter`);
 - `palletpilot segment time DATA_DIR [--model M.onnx] [--frames N] [--json]`: median, p95 and max
@@ -31,7 +31,7 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
     """Render `--frames` simulator frames into OUT_DIR as `frame_%05d.npz`."""
     from sim.dataset import generate_dataset
 
-    paths = generate_dataset(args.out_dir, args.frames, seed=args.seed, start=args.start)
+    paths = generate_dataset(args.out_dir, args.frames, seed=args.seed, start=args.start, mounts=args.mounts)
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
     return EXIT_OK
 
@@ -77,6 +77,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     ds.add_argument("--frames", type=int, required=True, help="number of frames")
     ds.add_argument("--seed", type=int, default=0)
     ds.add_argument("--start", type=int, default=0, help="index of the first frame (to extend a dataset)")
+    ds.add_argument(
+        "--mounts",
+        choices=("all", "pickup"),
+        default="all",
+        help="camera mounts: all (tilt 15-40 deg) or only those fit for the Pickup (calibrate's view check)",
+    )
     ds.set_defaults(func=cmd_segment_dataset)
 
     for name, func, text in (

@@ -16,7 +16,9 @@ What varies per frame (all SI units, poses in the world frame unless said otherw
 - the fork height: at a rack pallet the pallet's height plus 0..60 mm (one in seven frames anywhere
   between the floor and that height), at a floor pallet 0..60 mm;
 - the camera mount (`T_forklift_camera` at lift height 0): x -0.15..-0.05 m, y +-0.05 m, height
-  0.3..0.6 m, tilt 15..40 deg down, pan +-3 deg, roll +-2 deg;
+  0.3..0.6 m, tilt 15..40 deg down, pan +-3 deg, roll +-2 deg; with `mounts="pickup"` only mounts
+  that `palletpilot calibrate` finds fit for the Pickup (`perception.view.pickup_view`: a pallet's
+  entry face and a load on it in view 1.2-3.0 m ahead of the fork tips), redrawn until one is;
 - the camera: D435-like 640x480 with depth noise, dropouts and flying pixels, RGB sensor noise
   1..4 levels, the renderer's per-frame lighting variation (light direction, ambient and diffuse
   intensity +-20 %, colour tint, ceiling-lamp phase); labels are exact (no label noise);
@@ -36,15 +38,19 @@ import numpy as np
 
 from geometry import SE2
 from perception.frames import FrameBundle, save_bundle
-from perception.specs import load_forks
+from perception.specs import PalletType, load_forks
+from perception.view import pickup_view
 from roadmap import NodeType, load_map
-from sim.scenario import Scenario
+from sim.camera import d435_color_intrinsics
+from sim.scenario import CameraMount, Scenario
 from sim.simulator import Simulator
 
 MISSIONS_DIR = Path(__file__).resolve().parents[1] / "missions"
 """Folder of the example map, fork and vehicle files."""
 MAP_FILE = "warehouse.yaml"
 
+MOUNTS = ("all", "pickup")
+"""Camera mount sets: every mount of the ranges above, or only those fit for the Pickup."""
 MAX_LATERAL_M = 0.35
 MAX_YAW_DEG = 15.0
 _FAR_SHARE = 1.0 / 8.0
@@ -69,8 +75,35 @@ def pallet_nodes(missions_dir: Path = MISSIONS_DIR) -> list[tuple[str, float]]:
     return [(node, height) for node, height, _ in _map_facts(Path(missions_dir))[0]]
 
 
-def random_scenario(rng: np.random.Generator, missions_dir: Path = MISSIONS_DIR) -> tuple[Scenario, SE2, float]:
-    """A random scenario (see the module docstring) drawn from `rng`.
+def _mount(rng: np.random.Generator, missions_dir: Path, mounts: str) -> dict[str, float]:
+    """A random camera mount; with `mounts="pickup"` redrawn until `pickup_view` finds no problem."""
+    if mounts not in MOUNTS:
+        raise ValueError(f"mounts must be one of {', '.join(MOUNTS)}, got {mounts!r}")
+    while True:
+        mount = {
+            "x": float(rng.uniform(-0.15, -0.05)),
+            "y": float(rng.uniform(-0.05, 0.05)),
+            "z": float(rng.uniform(0.3, 0.6)),
+            "tilt_deg": float(rng.uniform(15.0, 40.0)),
+            "pan_deg": float(rng.uniform(-3.0, 3.0)),
+            "roll_deg": float(rng.uniform(-2.0, 2.0)),
+        }
+        if mounts == "all" or _suits_pickup(mount, Path(missions_dir)):
+            return mount
+
+
+def _suits_pickup(mount: dict[str, float], missions_dir: Path) -> bool:
+    """Does `palletpilot calibrate` find this mount fit for the Pickup (entry face and load in view)?"""
+    T_forklift_camera = CameraMount.model_validate(mount).T_forklift_camera()
+    forks = load_forks(missions_dir / "forks.yaml")
+    view = pickup_view(T_forklift_camera, d435_color_intrinsics(640, 480), (640, 480), forks, PalletType.eur())
+    return not view.problems()
+
+
+def random_scenario(
+    rng: np.random.Generator, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
+) -> tuple[Scenario, SE2, float]:
+    """A random scenario (see the module docstring) drawn from `rng`; `mounts`: "all" or "pickup".
 
     Returns (scenario, `T_world_forklift` standing pose near the target's pre-pallet node, fork
     height in m). The scenario starts at the pre-pallet node; `render_frame` moves the forklift.
@@ -98,14 +131,7 @@ def random_scenario(rng: np.random.Generator, missions_dir: Path = MISSIONS_DIR)
                     "loaded": bool(rng.random() < 0.5),
                 }
             )
-    mount = {
-        "x": float(rng.uniform(-0.15, -0.05)),
-        "y": float(rng.uniform(-0.05, 0.05)),
-        "z": float(rng.uniform(0.3, 0.6)),
-        "tilt_deg": float(rng.uniform(15.0, 40.0)),
-        "pan_deg": float(rng.uniform(-3.0, 3.0)),
-        "roll_deg": float(rng.uniform(-2.0, 2.0)),
-    }
+    mount = _mount(rng, missions_dir, mounts)
     noise = {
         "depth_noise": True,
         "invalid_rate": float(rng.uniform(0.0, 0.01)),
@@ -166,14 +192,14 @@ def _clutter(rng: np.random.Generator, T_world_forklift: SE2, tip_x: float) -> l
     return items
 
 
-def render_frame(index: int, seed: int, missions_dir: Path = MISSIONS_DIR) -> FrameBundle:
+def render_frame(index: int, seed: int, missions_dir: Path = MISSIONS_DIR, mounts: str = "all") -> FrameBundle:
     """Frame `index` of the dataset with `seed`: a random scenario rendered with the `Simulator` (640x480).
 
-    Deterministic for `(seed, index)`. The bundle carries RGB, depth (m), exact labels, the fork
-    height (m) and the simulator's truth keys.
+    Deterministic for `(seed, index, mounts)`. The bundle carries RGB, depth (m), exact labels, the
+    fork height (m) and the simulator's truth keys.
     """
     rng = np.random.default_rng([int(seed), int(index)])
-    sc, pose, fork_height = random_scenario(rng, missions_dir)
+    sc, pose, fork_height = random_scenario(rng, missions_dir, mounts)
     sim = Simulator(sc)
     sim.forklift.state.pose = pose  # teleport: a dataset frame needs no driving
     sim.forklift.state.fork_height = fork_height
@@ -181,14 +207,16 @@ def render_frame(index: int, seed: int, missions_dir: Path = MISSIONS_DIR) -> Fr
     return sim.grab()
 
 
-def iter_frames(n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR) -> Iterator[FrameBundle]:
+def iter_frames(
+    n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
+) -> Iterator[FrameBundle]:
     """Frames `start .. start + n - 1` of the dataset with `seed` (see `render_frame`)."""
     for i in range(start, start + n):
-        yield render_frame(i, seed, missions_dir)
+        yield render_frame(i, seed, missions_dir, mounts)
 
 
 def generate_dataset(
-    out_dir: str | Path, n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR
+    out_dir: str | Path, n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
 ) -> list[Path]:
     """Render frames `start .. start + n - 1` for `seed` and save them as `out_dir/frame_%05d.npz`.
 
@@ -197,6 +225,6 @@ def generate_dataset(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir), start=start):
+    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts), start=start):
         paths.append(save_bundle(out / f"frame_{i:05d}.npz", bundle))
     return paths

@@ -24,3 +24,33 @@ def test_pallet_nodes_of_the_example_map():
     ids = [n for n, _ in pallet_nodes()]
     assert "floor_a1" in ids and "rack_b3" in ids
     assert dict(pallet_nodes())["rack_a1"] == 1.0
+
+
+def test_pickup_mounts_are_the_ones_calibrate_accepts():
+    from perception.calibration_io import mount_angles
+    from perception.specs import PalletType, load_forks
+    from perception.view import pickup_view
+    from sim.camera import d435_color_intrinsics
+    from sim.dataset import MISSIONS_DIR, random_scenario
+
+    forks = load_forks(MISSIONS_DIR / "forks.yaml")
+    tilts = {"all": [], "pickup": []}
+    for mounts, found in tilts.items():
+        for i in range(40):
+            sc, _, _ = random_scenario(np.random.default_rng([3, i]), mounts=mounts)
+            T = sc.camera.mount.T_forklift_camera()
+            view = pickup_view(T, d435_color_intrinsics(640, 480), (640, 480), forks, PalletType.eur())
+            if mounts == "pickup":
+                assert view.problems() == []
+            found.append(np.degrees(mount_angles(T)[0]))
+    assert max(tilts["all"]) > 30.0  # the full set has mounts too steep for the Pickup ...
+    assert max(tilts["pickup"]) < 28.0  # ... the pickup set none
+
+
+def test_unknown_mount_set_is_refused():
+    import pytest
+
+    from sim.dataset import random_scenario
+
+    with pytest.raises(ValueError, match="mounts must be one of all, pickup"):
+        random_scenario(np.random.default_rng(0), mounts="steep")
