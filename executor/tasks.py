@@ -33,6 +33,7 @@ from perception.errors import PerceptionError
 from perception.frames import FrameBundle
 from perception.pallet import PalletEstimate, fuse_estimates
 from perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, node_pose_for_pallet
+from perception.view import pickup_view
 from roadmap import Direction, Edge, Node, NodeType, Overlay, Planner, Roadmap, RoadmapError, connect, reference_path
 from roadmap.planner import Route
 
@@ -345,14 +346,20 @@ class CalibrateCamera(Behaviour):
             return None
         errors = []
         for attempt in range(1 + ctx.settings.calibration_retries):
+            frame = ctx.grab()
             try:
-                ctx.calibration = ctx.perception.calibrate([ctx.grab()])
+                ctx.calibration = ctx.perception.calibrate([frame])
             except (CalibrationError, PerceptionError) as exc:
                 errors.append(str(exc))
                 ctx.log("calibration_failed", attempt=attempt + 1, error=str(exc))
                 continue
             ctx.record.setdefault("calibrations", []).append(ctx.calibration.to_json())
             ctx.log("calibrated", xyz_m=ctx.calibration.to_json()["xyz_m"], quality=ctx.calibration.quality)
+            # A mount too steep for the Pickup explains a later "no entry face" or a hidden load.
+            h, w = frame.depth.shape
+            view = pickup_view(ctx.calibration.T_forklift_camera, frame.K, (w, h), ctx.forks, ctx.pallet_type)
+            if view.problems():
+                ctx.log("camera_mount_warning", problems=view.problems())
             return "done"
         raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {errors[-1]}")
 

@@ -20,9 +20,9 @@ def mission_file(tmp_path: Path, tasks: list[dict], name: str = "test") -> Path:
     return path
 
 
-def scenario(start: str, pallets: list[dict], seed: int = 3, noise: bool = True) -> Scenario:
+def scenario(start: str, pallets: list[dict], seed: int = 3, noise: bool = True, tilt_deg: float = 22.0) -> Scenario:
     camera = {
-        "mount": {"tilt_deg": 22.0, "pan_deg": 0.8, "roll_deg": -0.5},
+        "mount": {"tilt_deg": tilt_deg, "pan_deg": 0.8, "roll_deg": -0.5},
         "perturbation": {"xyz_sigma": 0.002, "angle_sigma_deg": 0.2},
     }
     if not noise:
@@ -72,6 +72,16 @@ def test_misplaced_pallet_is_picked_after_replanning(tmp_path):
     report = json.loads((tmp_path / "report" / "report.json").read_text())["tasks"][0]
     assert report["estimates"][0]["aligned"] is False and report["estimates"][-1]["aligned"] is True
     assert report["temporary_nodes"][0]["pallet"] == "floor_b2~1"
+
+
+def test_a_mount_too_steep_for_a_far_load_is_reported_and_the_pickup_still_works(tmp_path):
+    sc = scenario("b1", [{"node": "floor_b2", "dy": 0.1, "dyaw_deg": 4.0}], tilt_deg=25.0)
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
+    assert r.success and r.sim.pallets[0].carried
+    events = [json.loads(line) for line in (tmp_path / "report" / "events.jsonl").read_text().splitlines()]
+    warnings = [e for e in events if e["event"] == "camera_mount_warning"]
+    assert warnings and all(w["problems"][0].startswith("a load is in the image only") for w in warnings)
+    assert not any("entry face" in p for w in warnings for p in w["problems"])  # the face stays in view
 
 
 def test_missing_pallet_fails_cleanly(tmp_path):
