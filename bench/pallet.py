@@ -41,6 +41,7 @@ from perception.calibration_io import Calibration
 from perception.frames import FrameBundle
 from perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
 from perception.segmentation import SegmentationScore
+from perception.view import PICKUP_AHEAD_M
 from sim.scenario import Scenario
 from sim.simulator import Simulator
 
@@ -230,7 +231,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lateral", type=float, default=0.35, help="max lateral misplacement (m)")
     parser.add_argument("--longitudinal", type=float, default=0.05, help="max misplacement along the node (m)")
     parser.add_argument("--yaw-deg", type=float, default=15.0, help="max yaw misplacement (deg)")
-    parser.add_argument("--ahead", type=float, nargs=2, default=(1.2, 3.0), help="entry face ahead of the tips (m)")
+    parser.add_argument("--ahead", type=float, nargs=2, default=PICKUP_AHEAD_M, help="entry face ahead of the tips (m)")
     parser.add_argument(
         "--frames-per-estimate",
         type=_positive_int,

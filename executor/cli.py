@@ -127,6 +127,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
     h, w = frames[0].depth.shape
     view = pickup_view(calibration.T_forklift_camera, frames[0].K, (w, h), forks, pallet)
+    problems = view.problems()
     doc = {**calibration.to_json(), "pickup_view": view.to_json()}
     if args.out:
         Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
@@ -141,10 +142,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             f"roll {doc['roll_about_optical_deg']:7.3f} deg"
         )
         print("  quality   " + ", ".join(f"{k} {v}" for k, v in calibration.quality.items()))
-        if not view.problems():
+        if not problems:
             lo, hi = view.ahead_m
             print(f"  pickup    the entry face and a load are in view {lo:.2f}-{hi:.2f} m ahead of the fork tips")
-    for problem in view.problems():  # the calibration is good; the mount may still not suit the Pickup
+    for problem in problems:  # the calibration is good; the mount may still not suit the Pickup
         print(f"warning: camera mount: {problem}", file=sys.stderr)
     return EXIT_OK
 

@@ -357,9 +357,17 @@ class CalibrateCamera(Behaviour):
             ctx.log("calibrated", xyz_m=ctx.calibration.to_json()["xyz_m"], quality=ctx.calibration.quality)
             # A mount too steep for the Pickup explains a later "no entry face" or a hidden load.
             h, w = frame.depth.shape
-            view = pickup_view(ctx.calibration.T_forklift_camera, frame.K, (w, h), ctx.forks, ctx.pallet_type)
-            if view.problems():
-                ctx.log("camera_mount_warning", problems=view.problems())
+            view = pickup_view(
+                ctx.calibration.T_forklift_camera,
+                frame.K,
+                (w, h),
+                ctx.forks,
+                ctx.pallet_type,
+                fork_clearance_m=ctx.settings.fork_clearance,
+            )
+            problems = view.problems()
+            if problems:
+                ctx.log("camera_mount_warning", problems=problems)
             return "done"
         raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {errors[-1]}")
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from geometry import SE2
 from perception.frames import FrameBundle, save_bundle
-from perception.specs import PalletType, load_forks
+from perception.specs import ForkGeometry, PalletType, load_forks
 from perception.view import pickup_view
 from roadmap import NodeType, load_map
 from sim.camera import d435_color_intrinsics
@@ -58,6 +58,12 @@ _LOW_FORKS_AT_RACK_SHARE = 1.0 / 7.0
 
 
 @lru_cache(maxsize=4)
+def _forks(missions_dir: Path) -> ForkGeometry:
+    """The fork geometry of the example files (read once)."""
+    return load_forks(missions_dir / "forks.yaml")
+
+
+@lru_cache(maxsize=4)
 def _map_facts(missions_dir: Path) -> tuple[tuple[tuple[str, float, SE2], ...], float]:
     """((pallet id, load height m, pre-pallet pose), ...) sorted by id, and the fork tip x (m)."""
     roadmap = load_map(missions_dir / MAP_FILE)
@@ -67,7 +73,7 @@ def _map_facts(missions_dir: Path) -> tuple[tuple[tuple[str, float, SE2], ...], 
         for n in roadmap.nodes()
         if n.type is NodeType.PALLET and f"{n.id}_pre" in ids
     )
-    return tuple(nodes), float(load_forks(missions_dir / "forks.yaml").tip_x)
+    return tuple(nodes), float(_forks(missions_dir).tip_x)
 
 
 def pallet_nodes(missions_dir: Path = MISSIONS_DIR) -> list[tuple[str, float]]:
@@ -95,8 +101,9 @@ def _mount(rng: np.random.Generator, missions_dir: Path, mounts: str) -> dict[st
 def _suits_pickup(mount: dict[str, float], missions_dir: Path) -> bool:
     """Does `palletpilot calibrate` find this mount fit for the Pickup (entry face and load in view)?"""
     T_forklift_camera = CameraMount.model_validate(mount).T_forklift_camera()
-    forks = load_forks(missions_dir / "forks.yaml")
-    view = pickup_view(T_forklift_camera, d435_color_intrinsics(640, 480), (640, 480), forks, PalletType.eur())
+    view = pickup_view(
+        T_forklift_camera, d435_color_intrinsics(640, 480), (640, 480), _forks(missions_dir), PalletType.eur()
+    )
     return not view.problems()
 
 
