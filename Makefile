@@ -18,9 +18,12 @@ demo: setup
 test: setup
 	$(BIN)/python -m pytest -q
 
+# Lint, types and import layers (pyproject: [tool.ruff], [tool.mypy], [tool.importlinter]); CI runs it.
 lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+	$(BIN)/lint-imports
 
 setup: system-libs $(STAMP)
 

@@ -5,10 +5,10 @@ Public API: `BENCHMARKS`, the registry of name -> module path.
 """
 
 BENCHMARKS: dict[str, str] = {
-    "roadmap": "bench.roadmap",
-    "sim": "bench.sim",
-    "calibration": "bench.calibration",
-    "pallet": "bench.pallet",
-    "mpc": "bench.mpc",
-    "missions": "bench.missions",
+    "roadmap": "palletpilot.bench.roadmap",
+    "sim": "palletpilot.bench.sim",
+    "calibration": "palletpilot.bench.calibration",
+    "pallet": "palletpilot.bench.pallet",
+    "mpc": "palletpilot.bench.mpc",
+    "missions": "palletpilot.bench.missions",
 }

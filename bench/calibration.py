@@ -20,15 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from geometry import SE3
-from perception.calibration import METHODS, CalibrationError, calibrate
-from perception.calibration_io import mount_angles
-from perception.specs import load_forks
-from sim.camera import D435_COLOR_VFOV_DEG
-from sim.scenario import Scenario
-from sim.simulator import Simulator
+from palletpilot.geometry import SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration import METHODS, CalibrationError, calibrate
+from palletpilot.perception.calibration_io import mount_angles
+from palletpilot.perception.specs import load_forks
+from palletpilot.sim.camera import D435_COLOR_VFOV_DEG
+from palletpilot.sim.scenario import Scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 PLACES = ("c_w", "j_charge", "j_drop", "b1", "a2", "t_e")  # open floor ahead of the forks
 AXES = ("err_x_mm", "err_y_mm", "err_z_mm", "err_tilt_deg", "err_pan_deg", "err_roll_deg")
 

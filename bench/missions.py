@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+from palletpilot.geometry.fileio import bundled_path
+
+MISSIONS = bundled_path("missions")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _scenarios(runs: int, seed: int) -> list[dict]:
-    from roadmap import NodeType, load_map
+    from palletpilot.roadmap import NodeType, load_map
 
     roadmap = load_map(MISSIONS / "warehouse.yaml")
     pallets = sorted(n.id for n in roadmap.nodes() if n.type is NodeType.PALLET)
@@ -81,8 +83,8 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
 
 def _one(job: tuple[dict, bool]) -> dict:
     """Run one scenario in one mode; returns the outcome (in a worker process)."""
-    from executor.app import run_simulated
-    from sim.scenario import Scenario
+    from palletpilot.executor.app import run_simulated
+    from palletpilot.sim.scenario import Scenario
 
     spec, adapt = job
     sc = Scenario.model_validate(spec["scenario"])

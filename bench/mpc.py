@@ -24,17 +24,24 @@ from pathlib import Path
 
 import numpy as np
 
-from control import FollowerConfig, FollowerStatus, MpcConfig, MpcFollower, PurePursuitFollower, load_vehicle
-from control.errors import ControlError
-from control.follower import Follower, SegmentTrack
-from control.vehicle import VehicleParams
-from geometry import SE2, wrap_angle
-from roadmap import Edge, Line, Node, NodeType, Planner, ReferencePath, connect, load_map, reference_path
-from sim.forklift import LocalizationNoise, SimForklift
+from palletpilot.control import (
+    FollowerConfig,
+    FollowerStatus,
+    MpcConfig,
+    MpcFollower,
+    PurePursuitFollower,
+    load_vehicle,
+)
+from palletpilot.control.errors import ControlError
+from palletpilot.control.follower import Follower, SegmentTrack
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.geometry import SE2, wrap_angle
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.roadmap import Edge, Line, Node, NodeType, Planner, ReferencePath, connect, load_map, reference_path
+from palletpilot.sim.forklift import LocalizationNoise, SimForklift
 
-ROOT = Path(__file__).resolve().parents[1]
-MAP = ROOT / "missions" / "warehouse.yaml"
-VEHICLE = ROOT / "missions" / "forklift.yaml"
+MAP = bundled_path("missions", "warehouse.yaml")
+VEHICLE = bundled_path("missions", "forklift.yaml")
 
 ROUTES: tuple[tuple[str, str], ...] = (
     ("a2", "c_e"),  # straight, 3 m arc, straight
@@ -67,6 +74,11 @@ class RouteResult:
     final_along: float | None = None
     duration: float = 0.0
     error: str = ""
+
+    def finals(self) -> tuple[float, float, float]:
+        """(final_lateral, final_heading, final_along) of a driven route (`drive` sets them when it ends)."""
+        assert self.final_lateral is not None and self.final_heading is not None and self.final_along is not None
+        return self.final_lateral, self.final_heading, self.final_along
 
 
 def displaced_route(roadmap_path: Path, params: VehicleParams, spec: tuple[str, float, float, float]) -> ReferencePath:
@@ -174,9 +186,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _summary(results: list[RouteResult], pallet: list[bool], solve_s: list[float], failures: int) -> dict:
-    lat = np.abs(np.concatenate([r.lateral for r in results if r.lateral] or [np.zeros(1)]))
-    head = np.abs(np.concatenate([r.heading for r in results if r.heading] or [np.zeros(1)]))
-    finals = [r for r, p in zip(results, pallet, strict=True) if p]
+    lat = np.abs(np.concatenate([np.asarray(r.lateral) for r in results if r.lateral] or [np.zeros(1)]))
+    head = np.abs(np.concatenate([np.asarray(r.heading) for r in results if r.heading] or [np.zeros(1)]))
+    finals = [r.finals() for r, p in zip(results, pallet, strict=True) if p]
     ms = np.asarray(solve_s) * 1e3 if solve_s else np.zeros(1)
     return {
         "solve_ms_median": round(float(np.median(ms)), 3),
@@ -185,11 +197,23 @@ def _summary(results: list[RouteResult], pallet: list[bool], solve_s: list[float
         "lateral_rms_m": round(float(np.sqrt(np.mean(lat**2))), 4),
         "lateral_max_m": round(float(np.max(lat)), 4),
         "heading_max_deg": round(math.degrees(float(np.max(head))), 3),
-        "final_lateral_mm": round(max(abs(r.final_lateral) for r in finals) * 1e3, 2) if finals else None,
-        "final_heading_deg": round(max(abs(math.degrees(r.final_heading)) for r in finals), 3) if finals else None,
-        "final_along_mm": round(max(abs(r.final_along) for r in finals) * 1e3, 2) if finals else None,
+        "final_lateral_mm": round(max(abs(lateral) for lateral, _, _ in finals) * 1e3, 2) if finals else None,
+        "final_heading_deg": round(max(abs(math.degrees(heading)) for _, heading, _ in finals), 3) if finals else None,
+        "final_along_mm": round(max(abs(along) for _, _, along in finals) * 1e3, 2) if finals else None,
         "failures": failures,
         "succeeded": f"{sum(r.status == 'succeeded' for r in results)}/{len(results)}",
+    }
+
+
+def _route_figures(r: RouteResult) -> dict:
+    lateral, heading, along = r.finals()
+    return {
+        "status": r.status if not r.error else f"{r.status}: {r.error}",
+        "lateral_max_m": round(float(np.max(np.abs(r.lateral))), 4) if r.lateral else None,
+        "final_lateral_mm": round(lateral * 1e3, 2),
+        "final_heading_deg": round(math.degrees(heading), 3),
+        "final_along_mm": round(along * 1e3, 2),
+        "duration_s": round(r.duration, 2),
     }
 
 
@@ -219,16 +243,6 @@ def run(args: argparse.Namespace) -> dict:
         summary = _summary(results, [c[2] for c in cases], follower.log.solve_s, follower.log.failures)
         summary["build_s"] = round(build_s, 2)
         if args.per_route:
-            summary["per_route"] = {
-                r.name: {
-                    "status": r.status if not r.error else f"{r.status}: {r.error}",
-                    "lateral_max_m": round(float(np.max(np.abs(r.lateral))), 4) if r.lateral else None,
-                    "final_lateral_mm": round(r.final_lateral * 1e3, 2),
-                    "final_heading_deg": round(math.degrees(r.final_heading), 3),
-                    "final_along_mm": round(r.final_along * 1e3, 2),
-                    "duration_s": round(r.duration, 2),
-                }
-                for r in results
-            }
+            summary["per_route"] = {r.name: _route_figures(r) for r in results}
         out[ctrl] = summary
     return out

@@ -31,21 +31,21 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from geometry import SE2, SE3
-from perception.calibration_io import Calibration
-from perception.frames import FrameBundle
-from perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
-from perception.segmentation import SegmentationScore
-from perception.view import PICKUP_AHEAD_M
-from sim.scenario import Scenario
-from sim.simulator import Simulator
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
+from palletpilot.perception.segmentation import SegmentationScore
+from palletpilot.perception.view import PICKUP_AHEAD_M
+from palletpilot.sim.scenario import Scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 FLOOR_NODES = ("floor_a1", "floor_a2", "floor_a3", "floor_b1", "floor_b2", "floor_b3")
 RACK_NODES = ("rack_a1", "rack_a2", "rack_a3", "rack_b1", "rack_b2", "rack_b3")
 FORK_CLEARANCE_M = 0.025
@@ -110,7 +110,7 @@ def scenario(spec: FrameSpec, width: int = 640, noise: bool = True) -> Scenario:
 def place(sim: Simulator, spec: FrameSpec, fork_height: float | None = None) -> None:
     """Stand the forklift on the pallet node's axis, the nominal entry face `spec.ahead` ahead of the tips."""
     node = sim.roadmap.node(spec.node)
-    from perception.specs import ENTRY_GAP_M
+    from palletpilot.perception.specs import ENTRY_GAP_M
 
     back = sim.forks.tip_x + spec.ahead - ENTRY_GAP_M  # node to forklift origin, along the node's heading
     sim.forklift.state.pose = node.pose @ SE2(-back, 0.0, 0.0)
@@ -167,7 +167,7 @@ def _labeller(kind: str) -> tuple[Callable[[FrameBundle], FrameBundle] | None, s
     if kind == "gt":
         return (lambda f: f), None
     try:
-        seg = importlib.import_module("perception.segmentation")
+        seg = importlib.import_module("palletpilot.perception.segmentation")
         segmenter = seg.OnnxSegmenter(seg.DEFAULT_MODEL)
     except Exception as exc:  # ImportError, a missing model file (PerceptionError), ...
         return None, f"{type(exc).__name__}: {exc}"
@@ -181,7 +181,7 @@ def _calibrator(kind: str) -> tuple[Callable[[FrameBundle, list[FrameBundle], An
     if kind == "true":
         return (lambda f, cal, forks: Calibration(SE3.from_matrix(f.truth["T_forklift_camera_true"]), "true")), None
     try:
-        module = importlib.import_module("perception.calibration")
+        module = importlib.import_module("palletpilot.perception.calibration")
         calibrate = module.calibrate
     except Exception as exc:
         return None, f"{type(exc).__name__}: {exc}"
@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> dict:
     }
     render_s = 0.0
     seg_score = SegmentationScore()
-    from perception.specs import load_forks
+    from palletpilot.perception.specs import load_forks
 
     forks = load_forks(MISSIONS / "forks.yaml")
     label_kinds_used = {lk for _, lk, _ in runnable}
@@ -277,6 +277,7 @@ def run(args: argparse.Namespace) -> dict:
         labelled = {lk: [labellers[lk][0](f) for f in frames] for lk in label_kinds_used}  # type: ignore[misc]
         if "onnx" in labelled:
             for frame, seg_frame in zip(frames, labelled["onnx"], strict=True):
+                assert seg_frame.labels is not None  # the onnx labeller sets the segmenter's labels
                 seg_score.add(frame.truth["labels_true"], seg_frame.labels)
         calibs: dict[str, Calibration | Exception] = {}
         for ck in cal_kinds_used:
@@ -352,10 +353,7 @@ def run(args: argparse.Namespace) -> dict:
             "yaw_deg": _stats(list(fused[:, 2]), 180.0 / math.pi, 3),
         }
         if name == "labels=gt,calibration=true" and n_ok:
-            res["goals"] = {
-                key: {"goal": goal, "met": _value(res, key) is not None and _value(res, key) <= goal}
-                for key, goal in GOALS.items()
-            }
+            res["goals"] = {key: {"goal": goal, "met": _meets(_value(res, key), goal)} for key, goal in GOALS.items()}
         if lk == "onnx":
             res["segmentation"] = seg_score.result()
         cases[name] = res
@@ -376,6 +374,10 @@ def _errors(T_true: SE3, T_est: SE3) -> tuple[float, float, float, float]:
     err = T_true.inv() @ T_est
     e2 = err.to_se2()
     return e2.y, e2.x, e2.yaw, float(err.t[2])
+
+
+def _meets(value: float | None, goal: float) -> bool:
+    return value is not None and value <= goal
 
 
 def _value(res: dict[str, Any], key: str) -> float | None:

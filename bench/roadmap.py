@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from geometry import SE2
-from roadmap import Arc, Edge, Line, Node, NodeType, Planner, Roadmap
+from palletpilot.geometry import SE2
+from palletpilot.roadmap import Arc, Edge, Line, Node, NodeType, Planner, Roadmap
 
 
 def warehouse_grid(rows: int = 100, cols: int = 100, spacing: float = 2.0, cross_every: int = 10) -> Roadmap:
@@ -49,7 +49,8 @@ def warehouse_grid(rows: int = 100, cols: int = 100, spacing: float = 2.0, cross
                     if not (0 <= c + dc < cols and 0 <= r + dr < rows):
                         continue
                     heading = 0.0 if dc == -1 else math.pi  # driving along the aisle towards column c
-                    arc = Arc(SE2(*xy(r, c + dc), heading), xy(r + dr, c))
+                    start = xy(r, c + dc)
+                    arc = Arc(SE2(start[0], start[1], heading), xy(r + dr, c))
                     rm.add_edge(Edge(nid[r][c + dc], nid[r + dr][c], arc))
                     rm.add_edge(Edge(nid[r + dr][c], nid[r][c + dc], arc.reversed()))
     return rm
@@ -78,7 +79,8 @@ def run(args: argparse.Namespace) -> dict:
     planner.plan(ids[0], ids[1])  # builds the (node, heading) state arrays once
     build_ms = (time.perf_counter() - t0) * 1e3
 
-    times, lengths = [], []
+    times: list[float] = []
+    lengths: list[float] = []
     while len(times) < args.queries:
         a, b = rng.integers(len(ids), size=2)
         if np.hypot(*(xy[a] - xy[b])) < 0.5 * diag:

@@ -12,14 +12,14 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 
-from sim.scenario import load_scenario
-from sim.simulator import CONTROL_DT, Simulator
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.sim.scenario import load_scenario
+from palletpilot.sim.simulator import CONTROL_DT, Simulator
 
-SCENARIO = Path(__file__).resolve().parents[1] / "missions" / "scenario_floor.yaml"
+SCENARIO = bundled_path("missions") / "scenario_floor.yaml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,12 +11,12 @@ Public API:
 - `ControlError`.
 """
 
-from control.errors import ControlError
-from control.follower import DriveCommand, Follower, FollowerConfig, FollowerStatus, TrackingError
-from control.model import KinematicModel
-from control.mpc import MpcConfig, MpcFollower, MpcWeights
-from control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
-from control.vehicle import MastParams, VehicleParams, load_vehicle
+from palletpilot.control.errors import ControlError
+from palletpilot.control.follower import DriveCommand, Follower, FollowerConfig, FollowerStatus, TrackingError
+from palletpilot.control.model import KinematicModel
+from palletpilot.control.mpc import MpcConfig, MpcFollower, MpcWeights
+from palletpilot.control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
+from palletpilot.control.vehicle import MastParams, VehicleParams, load_vehicle
 
 __all__ = [
     "ControlError",

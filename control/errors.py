@@ -1,6 +1,6 @@
 """Control errors."""
 
-from geometry import PalletpilotError
+from palletpilot.geometry import PalletpilotError
 
 
 class ControlError(PalletpilotError):

@@ -36,16 +36,17 @@ from __future__ import annotations
 import math
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
 
-from control.errors import ControlError
-from control.model import KinematicModel
-from control.vehicle import VehicleParams
-from geometry import SE2, wrap_angle
-from roadmap.path import PathSegment, ReferencePath
+from palletpilot.control.errors import ControlError
+from palletpilot.control.model import KinematicModel
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.geometry import SE2, wrap_angle
+from palletpilot.roadmap.path import PathSegment, ReferencePath
 
 
 class FollowerStatus(str, Enum):
@@ -171,8 +172,8 @@ class SegmentTrack:
         Past the ends the projection continues along the end tangents, so the result may be
         negative or exceed `length`.
         """
-        lo = np.searchsorted(self.s, s_guess - back, side="left")
-        hi = np.searchsorted(self.s, s_guess + ahead, side="right")
+        lo = int(np.searchsorted(self.s, s_guess - back, side="left"))
+        hi = int(np.searchsorted(self.s, s_guess + ahead, side="right"))
         lo, hi = max(0, lo - 1), min(len(self.s), hi + 1)
         if hi - lo < 2:
             lo, hi = max(0, min(lo, len(self.s) - 2)), min(len(self.s), max(hi, 2))
@@ -273,6 +274,8 @@ class Follower(ABC):
         self._tracks: list[SegmentTrack] = []
         self._index = 0
         self._status = FollowerStatus.SUCCEEDED
+        # Fault injection (the simulator's `solver_failure`): a message fails this control step like a solver.
+        self.step_fault: Callable[[float], str | None] | None = None
         self._t_prev: float | None = None
         self._s = 0.0
         self._failures = 0
@@ -343,6 +346,9 @@ class Follower(ABC):
         self._check_progress(t, track)
         step = StepInput(t, dt, est, speed, steering, self._s, err)
         try:
+            injected = self.step_fault(t) if self.step_fault is not None else None
+            if injected is not None:
+                raise StepFailed(injected)
             v_cmd, steer_cmd = self._control(self._tracks[self._index], step)
             v_cmd, steer_cmd = self._checked(v_cmd, steer_cmd, self._tracks[self._index])
         except StepFailed as exc:

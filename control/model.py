@@ -20,16 +20,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import casadi as ca
 import numpy as np
 
-from control.vehicle import VehicleParams
+from palletpilot.control.vehicle import VehicleParams
 
 NX = 4
 """State size: x, y, yaw, steering."""
 NU = 2
 """Input size: speed, steering rate."""
+
+_Sym = TypeVar("_Sym", ca.SX, ca.MX, ca.DM)
+"""A CasADi expression type (DM for numeric evaluation): one call uses one type throughout."""
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,7 @@ class KinematicModel:
         """Steering angle (rad) whose path curvature (1/m, d yaw / d forward displacement) is `curvature`."""
         return np.arctan(np.asarray(curvature) * self.wheelbase)
 
-    def rhs(self, z: ca.SX | ca.MX, u: ca.SX | ca.MX) -> ca.SX | ca.MX:
+    def rhs(self, z: _Sym, u: _Sym) -> _Sym:
         """Continuous-time right-hand side dz/dt (CasADi expression)."""
         v, rate = u[0], u[1]
         return ca.vertcat(
@@ -78,7 +82,7 @@ class KinematicModel:
             rate,
         )
 
-    def rk4(self, z: ca.SX | ca.MX, u: ca.SX | ca.MX, dt: float) -> ca.SX | ca.MX:
+    def rk4(self, z: _Sym, u: _Sym, dt: float) -> _Sym:
         """State after `dt` seconds with constant inputs (one RK4 step, CasADi expression)."""
         k1 = self.rhs(z, u)
         k2 = self.rhs(z + 0.5 * dt * k1, u)

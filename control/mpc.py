@@ -57,12 +57,13 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
-from control.errors import ControlError
-from control.follower import (
+from palletpilot.control.errors import ControlError
+from palletpilot.control.follower import (
     Follower,
     FollowerConfig,
     SegmentTrack,
@@ -71,9 +72,9 @@ from control.follower import (
     lag_compensated,
     timed,
 )
-from control.model import KinematicModel
-from control.vehicle import VehicleParams
-from geometry import SE2
+from palletpilot.control.model import KinematicModel
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.geometry import SE2
 
 NZ = 5
 """MPC state size: x, y, yaw, steering, previous speed input."""
@@ -143,7 +144,7 @@ def build_nlp(model: KinematicModel, config: MpcConfig) -> dict[str, ca.SX]:
     p = ca.SX.sym("p", NZ + NP_STAGE * n)
     zs = [ca.SX.sym(f"z{k}", NZ) for k in range(n + 1)]
     us = [ca.SX.sym(f"u{k}", NU) for k in range(n)]
-    w_vars, g, f = [], [zs[0] - p[:NZ]], 0
+    w_vars, g, f = [], [zs[0] - p[:NZ]], ca.SX(0)
     for k in range(n):
         w_vars += [zs[k], us[k]]
         ref = p[NZ + NP_STAGE * k : NZ + NP_STAGE * (k + 1)]
@@ -166,7 +167,7 @@ def _cache_dir(config: MpcConfig) -> Path:
 
 def _compile_cached(source: bytes, config: MpcConfig) -> Path:
     """Compile generated C with the system compiler (-O2) into a shared library cached by content hash."""
-    key = hashlib.sha256(source + ca.__version__.encode()).hexdigest()[:16]
+    key = hashlib.sha256(source + ca.__version__.encode()).hexdigest()[:16]  # type: ignore[attr-defined]  # not in stubs
     cache = _cache_dir(config)
     lib = cache / f"mpc_{key}.so"
     if lib.exists():
@@ -213,6 +214,7 @@ def _make_solver(model: KinematicModel, config: MpcConfig) -> ca.Function:
     nlp = build_nlp(model, config)
     common = {"print_time": False, "error_on_fail": False}
     n = config.horizon
+    opts: dict[str, Any]
     if config.solver == "ipopt":
         opts = {
             **common,

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.follower import Follower, FollowerConfig, SegmentTrack, StepInput, timed
-from control.vehicle import VehicleParams
+from palletpilot.control.follower import Follower, FollowerConfig, SegmentTrack, StepInput, timed
+from palletpilot.control.vehicle import VehicleParams
 
 
 @dataclass

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from control.errors import ControlError
-from geometry.fileio import load_yaml_model
+from palletpilot.control.errors import ControlError
+from palletpilot.geometry.fileio import load_yaml_model
 
 
 class MastParams(BaseModel):
@@ -40,6 +40,9 @@ class VehicleParams(BaseModel):
     max_speed_reverse: float = Field(gt=0.0, description="m/s")
     max_accel: float = Field(gt=0.0, description="m/s^2")
     max_decel: float = Field(gt=0.0, description="m/s^2")
+    emergency_decel: float = Field(
+        1.5, gt=0.0, description="m/s^2, the safety stop: the truck's own brake, whatever the drive commands"
+    )
     actuator_lag_s: float = Field(0.1, ge=0.0, description="first-order lag of speed and steering")
     mast: MastParams = MastParams()
 
@@ -47,6 +50,8 @@ class VehicleParams(BaseModel):
     def _mast_range(self) -> VehicleParams:
         if self.mast.max_height <= self.mast.min_height:
             raise ValueError("mast.max_height must be above mast.min_height")
+        if self.emergency_decel < self.max_decel:
+            raise ValueError("emergency_decel must be at least max_decel")
         return self
 
     @property

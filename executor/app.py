@@ -1,35 +1,50 @@
 """Running a mission in the simulated warehouse: from files to a finished, reported run.
 
-`run_simulated(mission_path, scenario_path=None, seed=None, report_dir=None, adapt=True)` loads and
-validates the mission against its map and the vehicle, builds the simulator (the scenario's, or the
-default warehouse: the mission's map, the forklift at the first charging node, an empty pallet exactly
-at every pickup node), runs the tasks and writes the report. Returns a `SimRun`.
+`run_simulated(mission_path, scenario_path=None, ...)` loads and validates the mission against its map
+and the vehicle, builds the simulator (the scenario's, or the default warehouse: the mission's map, the
+forklift at the first charging node, an empty pallet exactly at every pickup node), wires the
+scenario's injected faults (`sim.faults`), runs the tasks on a simulated or wall clock, journals the
+progress when asked (`journal=`), and writes the report. `resume_simulated(journal)` continues an
+interrupted run from its journal, in the same world. Both return a `SimRun`.
+
+Report folder: a new run removes the previous run's files first, so a folder never mixes two runs; a
+resumed run appends to its own `events.jsonl`. Files are written atomically; a write that fails after
+the mission ran is recorded in `SimRun.write_errors` (the CLI exits 3 when the mission succeeded).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
+import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Any, Literal, TextIO
 
 import numpy as np
 
-from control.mpc import MpcConfig, MpcFollower
-from control.vehicle import load_vehicle
-from executor.mission import Mission, load_mission, validate_mission
-from executor.ports import LocalPerception
-from executor.report import summary, write_report
-from executor.runner import Runner, SimClock
-from executor.tasks import Settings
-from perception.specs import node_pose_for_pallet
-from roadmap import NodeType, load_map, map_vehicle_file
-from sim.scenario import Scenario, SimError, load_scenario
-from sim.simulator import Simulator
+from palletpilot.control.mpc import MpcConfig, MpcFollower
+from palletpilot.control.vehicle import load_vehicle
+from palletpilot.executor.behaviour import Settings
+from palletpilot.executor.clock import Clock, SimClock, WallClock
+from palletpilot.executor.controls import Controls
+from palletpilot.executor.journal import Journal, JournalError
+from palletpilot.executor.mission import Mission, load_mission, validate_mission
+from palletpilot.executor.ports import LocalPerception
+from palletpilot.executor.report import REPORT_FILES, summary, write_report
+from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
+from palletpilot.executor.runner import Runner
+from palletpilot.geometry import OutputError
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.specs import node_pose_for_pallet
+from palletpilot.roadmap import NodeType, load_map, map_vehicle_file
+from palletpilot.sim.faults import FaultInjector
+from palletpilot.sim.scenario import Scenario, SimError, load_scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+ClockKind = Literal["sim", "wall"]
 
 
 @dataclass
@@ -39,8 +54,9 @@ class SimRun:
     success: bool
     runner: Runner
     sim: Simulator
-    summary: dict
+    summary: dict[str, Any]
     report: Path | None
+    write_errors: list[str] = field(default_factory=list)
 
 
 def default_scenario(mission: Mission) -> Scenario:
@@ -50,16 +66,36 @@ def default_scenario(mission: Mission) -> Scenario:
     if not chargers:
         raise SimError(f"{mission.map_path}: no charging node to start the default warehouse from")
     pickups = [t.node for t in mission.tasks if t.type == "pickup"]
+    missions = bundled_path("missions")
     sc = Scenario.model_validate(
         {
             "map": str(mission.map_path.resolve()),
-            "forks": str((MISSIONS / "forks.yaml").resolve()),
+            "forks": str((missions / "forks.yaml").resolve()),
             "start": chargers[0],
             "pallets": [{"node": n} for n in pickups],
         }
     )
-    sc.folder = MISSIONS
+    sc.folder = missions
     return sc
+
+
+def _sha256(path: Path) -> str:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise ResumeError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _prepare_report_dir(folder: Path, fresh: bool) -> None:
+    """Create the folder; a fresh run removes the previous run's report files first."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if fresh:
+            for name in REPORT_FILES:
+                with contextlib.suppress(FileNotFoundError):
+                    (folder / name).unlink()
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot prepare the report folder: {exc.strerror or exc}") from None
 
 
 def run_simulated(
@@ -72,11 +108,15 @@ def run_simulated(
     progress: TextIO | None = None,
     scenario: Scenario | None = None,
     on_start: Callable[[Runner], None] | None = None,
+    clock: ClockKind = "sim",
+    journal: str | Path | None = None,
+    controls: Controls | None = None,
 ) -> SimRun:
     """Validate and run a mission in the simulator; write the report when `report_dir` is given.
 
-    `on_start(runner)` is called once the runner exists and before it runs (e.g. to pause, resume or
-    cancel it from a signal handler).
+    `clock`: `sim` (simulated time, deterministic) or `wall` (real time at 20 Hz). `journal`: an SQLite
+    file that records the progress for `resume_simulated`. `on_start(runner)` is called once the
+    runner exists and before it runs. `controls`: pause / cancel flags (the CLI's signal handlers).
     """
     mission = load_mission(mission_path)
     if scenario is None:
@@ -86,68 +126,228 @@ def run_simulated(
     vehicle_file = map_vehicle_file(mission.map_path)
     vehicle = load_vehicle(vehicle_file) if vehicle_file else sim.vehicle
     validate_mission(mission, roadmap, vehicle, scenario.start, str(mission_path))
+    folder = Path(report_dir).resolve() if report_dir is not None else None
+    book = None
+    if journal is not None:
+        meta = {
+            "run_id": uuid.uuid4().hex,
+            "mission": str(Path(mission_path).resolve()),
+            "mission_sha256": _sha256(Path(mission_path)),
+            "map_sha256": _sha256(mission.map_path),
+            "scenario": scenario.model_dump(mode="json"),
+            "scenario_folder": str(Path(scenario.folder).resolve()),
+            "seed": sim.seed,
+            "report_dir": None if folder is None else str(folder),
+            "adapt": adapt,
+            "clock": clock,
+        }
+        book = Journal.create(journal, meta)
+    run_id = book.meta["run_id"] if book is not None else uuid.uuid4().hex
+    if folder is not None:
+        _prepare_report_dir(folder, fresh=True)
+    return _execute(
+        mission,
+        roadmap,
+        vehicle,
+        sim,
+        scenario,
+        folder,
+        adapt,
+        settings,
+        progress,
+        on_start,
+        clock,
+        book,
+        controls,
+        run_id,
+        None,
+    )
 
+
+def resume_simulated(
+    journal: str | Path,
+    progress: TextIO | None = None,
+    on_start: Callable[[Runner], None] | None = None,
+    controls: Controls | None = None,
+    settings: Settings | None = None,
+) -> SimRun:
+    """Continue an interrupted simulated run from its journal, in the same world; report as the run's own."""
+    book = Journal.open(journal)
+    if book.finished:
+        book.close()
+        raise JournalError(f"{journal}: the run it records has finished; nothing to resume")
+    meta = book.meta
+    mission_path = Path(meta["mission"])
+    if _sha256(mission_path) != meta["mission_sha256"]:
+        raise ResumeError(f"{mission_path}: changed since the run started; the journal cannot be resumed")
+    mission = load_mission(mission_path)
+    if _sha256(mission.map_path) != meta["map_sha256"]:
+        raise ResumeError(f"{mission.map_path}: changed since the run started; the journal cannot be resumed")
+    scenario = Scenario.model_validate(meta["scenario"])
+    scenario.folder = Path(meta["scenario_folder"])
+    sim = Simulator(scenario, seed=int(meta["seed"]))
+    point = ResumePoint(book.checkpoints(), resumes=book.mark_resumed())
+    if point.world is None:
+        raise ResumeError(f"{journal}: the checkpoint has no simulator state to continue from")
+    sim.restore(point.world)
+    roadmap = load_map(mission.map_path)
+    vehicle_file = map_vehicle_file(mission.map_path)
+    vehicle = load_vehicle(vehicle_file) if vehicle_file else sim.vehicle
+    folder = Path(meta["report_dir"]) if meta.get("report_dir") else None
+    if folder is not None:
+        _prepare_report_dir(folder, fresh=False)
+    return _execute(
+        mission,
+        roadmap,
+        vehicle,
+        sim,
+        scenario,
+        folder,
+        bool(meta["adapt"]),
+        settings,
+        progress,
+        on_start,
+        meta.get("clock", "sim"),
+        book,
+        controls,
+        str(meta["run_id"]),
+        point,
+    )
+
+
+def _execute(
+    mission: Mission,
+    roadmap: Any,
+    vehicle: Any,
+    sim: Simulator,
+    scenario: Scenario,
+    folder: Path | None,
+    adapt: bool,
+    settings: Settings | None,
+    progress: TextIO | None,
+    on_start: Callable[[Runner], None] | None,
+    clock_kind: ClockKind,
+    book: Journal | None,
+    controls: Controls | None,
+    run_id: str,
+    point: ResumePoint | None,
+) -> SimRun:
     settings = settings or Settings()
     settings.adapt = adapt
-    perception = LocalPerception(sim.forks, sim.pallet_type) if adapt else None
-    clock = SimClock(sim.step)
+    injector = FaultInjector(scenario.faults, sim, realtime=clock_kind == "wall")
+    if point is not None:
+        injector.skip_until(point.t)
+        injector.skip_states(point.started_states())
+    perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type)) if adapt else None
+
+    def step(dt: float) -> None:
+        sim.step(dt)
+        injector.poll(sim.time)
+
+    start_s = point.t if point is not None else 0.0
+    clock: Clock = SimClock(step, start_s=start_s) if clock_kind == "sim" else WallClock(step=step, start_s=start_s)
+    # Simulated time waits for each solve: no wall-clock deadline, so the machine's load cannot change a
+    # seeded run (the report gives the solve times). On a wall clock a late solve brakes.
+    deadline = None if clock_kind == "sim" else MpcConfig().solve_deadline_s
+    follower = MpcFollower(vehicle, MpcConfig(solve_deadline_s=deadline))
+    follower.step_fault = injector.step_failure
+    write_errors: list[str] = []
     with contextlib.ExitStack() as stack:
         events = None
-        if report_dir is not None:
-            folder = Path(report_dir)
-            folder.mkdir(parents=True, exist_ok=True)
-            events = stack.enter_context((folder / "events.jsonl").open("w"))
+        if folder is not None:
+            try:
+                events = stack.enter_context((folder / "events.jsonl").open("a" if point else "w"))
+            except OSError as exc:
+                raise OutputError(f"{folder / 'events.jsonl'}: cannot write: {exc.strerror or exc}") from None
+        if book is not None:
+            stack.callback(book.close)
         runner = Runner(
             mission,
             roadmap,
-            sim,
+            injector.vehicle,
             perception,
-            sim.grab,
+            injector.grab,
             clock,
             vehicle,
             sim.forks,
             scenario.start,
             settings=settings,
-            # Simulated time waits for each solve: no wall-clock deadline, so the machine's load cannot
-            # change a seeded run. The solve times are in the report (`solve_ms`).
-            follower=MpcFollower(vehicle, MpcConfig(solve_deadline_s=None)),
+            follower=follower,
             events=events,
             progress=progress,
+            controls=controls,
+            checkpointer=Checkpointer(book, sim.snapshot) if book is not None else None,
+            resume=point,
+            listeners=[injector.observe],
         )
+        if point is None:
+            runner._log("run_start", run_id=run_id, seed=sim.seed, clock=clock_kind)
         if on_start is not None:
             on_start(runner)
         success = runner.run()
-    truth = [node_pose_for_pallet(p.T_world_pallet) for p in sim.pallets]
+        if book is not None:
+            try:
+                book.finish(success, None if success else _first_reason(runner))
+            except JournalError as exc:
+                write_errors.append(str(exc))
     report = None
-    if report_dir is not None:
-        report = write_report(
-            Path(report_dir),
-            mission.name,
-            success,
-            runner.results,
-            roadmap,
-            runner.trajectory,
-            runner.ctx.planned_paths,
-            truth_pallets=[(p.T_world_pallet).to_se2() for p in sim.pallets],
-            extra={
-                "seed": sim.seed,
-                "adapt": adapt,
-                "simulated_s": round(clock.now(), 2),
-                "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
-                "collisions": sim.collisions,
-                "pallets_true": [
-                    {
-                        "node": p.node,
-                        "x_m": round(t.x, 4),
-                        "y_m": round(t.y, 4),
-                        "yaw_deg": round(math.degrees(t.yaw), 3),
-                        "carried": p.carried,
-                    }
-                    for p, t in zip(sim.pallets, truth, strict=True)
-                ],
-            },
-        )
-    return SimRun(success, runner, sim, summary(success, runner.results), report)
+    if folder is not None:
+        try:
+            report = _write(folder, mission, success, runner, sim, clock, adapt, run_id, point, injector)
+        except OutputError as exc:
+            write_errors.append(str(exc))
+    return SimRun(success, runner, sim, summary(success, runner.results), report, write_errors)
+
+
+def _first_reason(runner: Runner) -> str | None:
+    return next((r.reason for r in runner.results if r.reason), None)
+
+
+def _write(
+    folder: Path,
+    mission: Mission,
+    success: bool,
+    runner: Runner,
+    sim: Simulator,
+    clock: Clock,
+    adapt: bool,
+    run_id: str,
+    point: ResumePoint | None,
+    injector: FaultInjector,
+) -> Path:
+    truth = [node_pose_for_pallet(p.T_world_pallet) for p in sim.pallets]
+    return write_report(
+        folder,
+        mission.name,
+        success,
+        runner.results,
+        runner.ctx.roadmap,
+        runner.trajectory,
+        runner.ctx.planned_paths,
+        truth_pallets=[(p.T_world_pallet).to_se2() for p in sim.pallets],
+        extra={
+            "run_id": run_id,
+            "seed": sim.seed,
+            "adapt": adapt,
+            "simulated_s": round(sim.time, 2),
+            "resumed": 0 if point is None else point.resumes,
+            "clock": clock.stats(),
+            "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
+            "collisions": sim.collisions,
+            "stops": runner.stops,
+            "faults_injected": injector.injected,
+            "pallets_true": [
+                {
+                    "node": p.node,
+                    "x_m": round(t.x, 4),
+                    "y_m": round(t.y, 4),
+                    "yaw_deg": round(math.degrees(t.yaw), 3),
+                    "carried": p.carried,
+                }
+                for p, t in zip(sim.pallets, truth, strict=True)
+            ],
+        },
+    )
 
 
 def _solve_ms(solve_s: list[float]) -> dict[str, float | None]:

@@ -1,46 +1,54 @@
 """The `palletpilot` command line.
 
-Commands (exit 0 on success, 2 on bad input with one line per problem on stderr, never a traceback):
+Exit codes: 0 success; 1 the mission failed (the vehicle is stopped, the reason printed); 2 bad input,
+one line per problem on stderr, never a traceback; 3 an output could not be written (for `run`: the
+mission succeeded but its report did not land; the line says which file); 128 + N a run cancelled by
+signal N (130 Ctrl-C / SIGINT, 143 SIGTERM), with the vehicle stopped and the report written.
+
+Commands:
 - `palletpilot map check MAP [--vehicle VEHICLE.yaml]`
 - `palletpilot map show MAP --out PNG [--route FROM TO]`
 - `palletpilot plan MAP FROM TO [--json]`
-- `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]`
-  (exit 0 success, 1 mission failed, 2 bad input); `palletpilot mission diagram TASK [--out FILE]`
+- `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]
+  [--clock sim|wall] [--journal FILE]`, `palletpilot run --demo`, `palletpilot run --resume JOURNAL`;
+  `palletpilot mission diagram TASK [--out FILE]`; `palletpilot examples [--out DIR]`
 - `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]
   [--pallet eur|FILE.yaml]`; it also checks that the calibrated mount shows a pallet's entry face and
   load at the Pickup's distances (`perception.view`), with a warning on stderr when it does not
 - `palletpilot capture --out DIR [--count N] [--serial S]`, `palletpilot capture --recording FILE --out DIR`
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
-- `palletpilot bench NAME [--json] [bench options]` (see `bench/`)
+- `palletpilot bench NAME [--json] [bench options]` is added by `palletpilot.cli` (see `bench/`)
 """
 
 from __future__ import annotations
 
-import os
+import argparse
+import importlib
+import json
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
 
-# Our matrices are small (poses, point sets of thousands): a multi-threaded BLAS only oversubscribes
-# the cores (measured: 11 ms SVDs of 3500 x 6 matrices under load). Set before numpy loads.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import argparse  # noqa: E402
-import importlib  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-from collections.abc import Sequence  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-from geometry import PalletpilotError  # noqa: E402
+from palletpilot.geometry import OutputError, PalletpilotError
+from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
 
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
+EXIT_WRITE_FAILED = 3
+
+DEMO_MISSION = "pickup_delivery.yaml"
+DEMO_SCENARIO = "scenario_demo.yaml"
+
+# A function that adds sub-commands to the `palletpilot` parser (`palletpilot.bench.cli.add_parsers`).
+Extension = Callable[["argparse._SubParsersAction"], None]
 
 
 def _max_curvature(map_path: str, vehicle: str | None) -> tuple[float | None, str | None]:
     """The curvature limit (1/m) from --vehicle or the map's own `vehicle` file, and that file's name."""
-    from control import load_vehicle
-    from roadmap import map_vehicle_file
+    from palletpilot.control import load_vehicle
+    from palletpilot.roadmap import map_vehicle_file
 
     path = Path(vehicle) if vehicle else map_vehicle_file(map_path)
     if path is None:
@@ -50,7 +58,7 @@ def _max_curvature(map_path: str, vehicle: str | None) -> tuple[float | None, st
 
 def cmd_map_check(args: argparse.Namespace) -> int:
     """Validate a map file, including curvature against the vehicle."""
-    from roadmap import check_map
+    from palletpilot.roadmap import check_map
 
     kappa, vehicle = _max_curvature(args.map, args.vehicle)
     roadmap, problems = check_map(args.map, kappa)
@@ -66,8 +74,8 @@ def cmd_map_check(args: argparse.Namespace) -> int:
 
 def cmd_map_show(args: argparse.Namespace) -> int:
     """Draw the map (and optionally a planned route) to a PNG."""
-    from roadmap import Planner, load_map
-    from roadmap.draw import save_roadmap_png
+    from palletpilot.roadmap import Planner, load_map
+    from palletpilot.roadmap.draw import save_roadmap_png
 
     roadmap = load_map(args.map)
     route = Planner(roadmap).plan(*args.route) if args.route else None
@@ -78,7 +86,7 @@ def cmd_map_show(args: argparse.Namespace) -> int:
 
 def cmd_plan(args: argparse.Namespace) -> int:
     """Plan the shortest route between two nodes."""
-    from roadmap import Planner, load_map
+    from palletpilot.roadmap import Planner, load_map
 
     route = Planner(load_map(args.map)).plan(args.start, args.goal)
     if args.json:
@@ -91,9 +99,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def cmd_sim_render(args: argparse.Namespace) -> int:
     """Render one frame bundle of a scenario from its start node (or --at NODE)."""
-    from perception.frames import save_bundle
-    from sim.scenario import load_scenario
-    from sim.simulator import Simulator
+    from palletpilot.perception.frames import save_bundle
+    from palletpilot.sim.scenario import load_scenario
+    from palletpilot.sim.simulator import Simulator
 
     sim = Simulator(load_scenario(args.scenario), seed=args.seed, start=args.at)
     if args.fork_height is not None:
@@ -108,7 +116,7 @@ def _labelled(frames: list, model: str | None) -> list:
     """Frames with labels: those without are segmented by the ONNX model (the shipped one by default)."""
     if all(f.labels is not None for f in frames):
         return frames
-    from perception.segmentation import DEFAULT_MODEL, OnnxSegmenter, ensure_labels
+    from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter, ensure_labels
 
     segmenter = OnnxSegmenter(model or DEFAULT_MODEL)
     return [ensure_labels(f, segmenter) for f in frames]
@@ -116,10 +124,10 @@ def _labelled(frames: list, model: str | None) -> list:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate T_forklift_camera from frame bundles of the forks and the floor."""
-    from perception.calibration import calibrate
-    from perception.frames import load_bundle
-    from perception.specs import load_forks, pallet_type
-    from perception.view import pickup_view
+    from palletpilot.perception.calibration import calibrate
+    from palletpilot.perception.frames import load_bundle
+    from palletpilot.perception.specs import load_forks, pallet_type
+    from palletpilot.perception.view import pickup_view
 
     forks = load_forks(args.forks)
     pallet = pallet_type(args.pallet)
@@ -130,7 +138,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     problems = view.problems()
     doc = {**calibration.to_json(), "pickup_view": view.to_json()}
     if args.out:
-        Path(args.out).write_text(json.dumps(doc, indent=2) + "\n")
+        write_json(args.out, doc)
     if args.json:
         print(json.dumps(doc, indent=2))
     else:
@@ -151,86 +159,111 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Run a mission in the simulated warehouse; exit 0 on success, 1 when the mission failed."""
-    import signal
-
-    from executor.app import run_simulated
+    """Run (or resume) a mission in the simulated warehouse; the exit codes are in the module docstring."""
+    from palletpilot.executor.app import resume_simulated, run_simulated
+    from palletpilot.executor.controls import CONTROLS
 
     progress = None if args.json or args.quiet else sys.stderr
-    report = args.report or "out/run"
-
-    def attach(runner: object) -> None:
-        """SIGUSR1 pauses the running mission, SIGUSR2 resumes it."""
-        signal.signal(signal.SIGUSR1, lambda _sig, _frame: runner.pause())  # type: ignore[attr-defined]
-        signal.signal(signal.SIGUSR2, lambda _sig, _frame: runner.resume())  # type: ignore[attr-defined]
-
-    try:
+    if args.resume:
+        if args.mission or args.scenario or args.demo or args.journal or args.seed is not None or args.report:
+            print(
+                "run: --resume continues the journal's own run; give it alone (with --json, --quiet)", file=sys.stderr
+            )
+            return EXIT_BAD_INPUT
+        result = resume_simulated(args.resume, progress=progress, controls=CONTROLS)
+    else:
+        if args.demo:
+            if args.mission or args.scenario:
+                print("run: --demo runs the bundled demo; give no MISSION or --scenario with it", file=sys.stderr)
+                return EXIT_BAD_INPUT
+            args.mission = str(bundled_path("missions", DEMO_MISSION))
+            args.scenario = str(bundled_path("missions", DEMO_SCENARIO))
+        elif not args.mission:
+            print("run: give a MISSION file (or --demo for the bundled demo)", file=sys.stderr)
+            return EXIT_BAD_INPUT
         result = run_simulated(
             args.mission,
             args.scenario,
             seed=args.seed,
-            report_dir=report,
+            report_dir=args.report or "out/run",
             adapt=not args.no_adapt,
             progress=progress,
-            on_start=attach,
+            clock=args.clock,
+            journal=args.journal,
+            controls=CONTROLS,
         )
-    except KeyboardInterrupt:
-        print("cancelled: the vehicle is stopped", file=sys.stderr)
-        return EXIT_FAILED
+    report = result.report.parent if result.report is not None else None
     if args.json:
         print(json.dumps(result.summary, indent=2))
     else:
         for task in result.summary["tasks"]:
             why = f" ({task['reason']})" if task["reason"] else ""
             print(f"{task['type']:9s} {task['node'] or '':14s} {task['result']}{why}, {task['attempts']} estimate(s)")
-        print(f"mission {'succeeded' if result.success else 'FAILED'}; report in {report}/")
-    if not result.success:
-        failed = next(t for t in result.runner.results if t.result != "succeeded")
+        where = f"; report in {report}/" if report is not None else ""
+        print(f"mission {'succeeded' if result.success else 'FAILED'}{where}")
+    for line in result.write_errors:
+        print(f"error: {line}", file=sys.stderr)
+    if result.success:
+        return EXIT_WRITE_FAILED if result.write_errors else EXIT_OK
+    failed = next((t for t in result.runner.results if t.result != "succeeded"), None)
+    if failed is not None:
         print(
-            f"mission failed: task {failed.index} ({failed.type}): {failed.message}; vehicle stopped", file=sys.stderr
+            f"mission failed: task {failed.index} ({failed.type}): {failed.reason}: {failed.message}; vehicle stopped",
+            file=sys.stderr,
         )
-    return EXIT_OK if result.success else EXIT_FAILED
+    if CONTROLS.cancel_signal is not None:
+        return 128 + CONTROLS.cancel_signal
+    return EXIT_FAILED
+
+
+def cmd_examples(args: argparse.Namespace) -> int:
+    """List the bundled example files (map, vehicle, forks, scenarios, missions), or copy them to --out."""
+    folder = bundled_path("missions")
+    names = sorted(p.name for p in folder.iterdir() if p.suffix == ".yaml")
+    if not args.out:
+        print(f"{folder}:")
+        for name in names:
+            print(f"  {name}")
+        return EXIT_OK
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        copied = 0
+        for name in names:
+            target = out / name
+            if target.exists():
+                print(f"examples: {target}: exists, left alone", file=sys.stderr)
+                continue
+            write_atomic(target, (folder / name).read_bytes())
+            copied += 1
+    except OSError as exc:
+        print(f"examples: {out}: cannot write: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(
+        f"copied {copied} example file(s) to {out}/ (run: palletpilot run {out}/{DEMO_MISSION} "
+        f"--scenario {out}/{DEMO_SCENARIO})"
+    )
+    return EXIT_OK
 
 
 def cmd_mission_diagram(args: argparse.Namespace) -> int:
     """Write a task type's state machine as a mermaid diagram."""
-    from executor.tasks import TASK_SPECS, mermaid
+    from palletpilot.executor.tasks import TASK_SPECS, mermaid
 
     if args.task not in TASK_SPECS:
         print(f"mission diagram: unknown task '{args.task}' (known: {', '.join(TASK_SPECS)})", file=sys.stderr)
         return EXIT_BAD_INPUT
     text = mermaid(args.task)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
+        write_atomic(args.out, text)
         print(f"wrote {args.out}")
     else:
         print(text)
     return EXIT_OK
 
 
-def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:
-    """Run one benchmark by name and print its figures."""
-    from bench import BENCHMARKS
-
-    if args.name not in BENCHMARKS:
-        print(f"bench: unknown benchmark '{args.name}' (known: {', '.join(sorted(BENCHMARKS))})", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    module = importlib.import_module(BENCHMARKS[args.name])
-    parser = argparse.ArgumentParser(prog=f"palletpilot bench {args.name}")
-    module.add_arguments(parser)
-    result = module.run(parser.parse_args(extra))
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        width = max(len(k) for k in result)
-        for key, value in result.items():
-            print(f"{key:<{width}}  {value}")
-    return EXIT_OK
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of `palletpilot`."""
+def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParser:
+    """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`)."""
     parser = argparse.ArgumentParser(prog="palletpilot", description="Mission executor for automated forklifts.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -254,14 +287,22 @@ def build_parser() -> argparse.ArgumentParser:
     plan.set_defaults(func=cmd_plan)
 
     run = sub.add_parser("run", help="run a mission (in the simulated warehouse)")
-    run.add_argument("mission")
+    run.add_argument("mission", nargs="?", help="mission file (YAML)")
+    run.add_argument("--demo", action="store_true", help=f"the bundled demo: {DEMO_MISSION} in {DEMO_SCENARIO}")
     run.add_argument("--scenario", help="scenario file (default: the default simulated warehouse)")
     run.add_argument("--seed", type=int, help="override the scenario's seed")
     run.add_argument("--report", help="report folder (default out/run)")
     run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
     run.add_argument("--quiet", action="store_true", help="no live progress")
+    run.add_argument("--clock", choices=("sim", "wall"), default="sim", help="simulated time (default) or real time")
+    run.add_argument("--journal", metavar="FILE", help="record the progress in this SQLite file (for --resume)")
+    run.add_argument("--resume", metavar="FILE", help="continue the interrupted run of this journal")
     run.set_defaults(func=cmd_run)
+
+    examples = sub.add_parser("examples", help="the bundled example files: list them, or copy them to edit")
+    examples.add_argument("--out", help="copy them into this folder (existing files are left alone)")
+    examples.set_defaults(func=cmd_examples)
 
     mission = sub.add_parser("mission", help="mission tools")
     mission_sub = mission.add_subparsers(dest="mission_command", required=True)
@@ -290,27 +331,35 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, help="override the scenario's seed")
     render.set_defaults(func=cmd_sim_render)
 
-    bench = sub.add_parser("bench", help="run a benchmark (options after NAME go to the benchmark)")
-    bench.add_argument("name")
-    bench.add_argument("--json", action="store_true")
-    bench.set_defaults(func=cmd_bench)
-
     # Commands defined next to the code they drive.
-    for module in ("executor.cli_capture", "executor.cli_pallet", "executor.cli_segmentation"):
+    for module in (
+        "palletpilot.executor.cli_capture",
+        "palletpilot.executor.cli_pallet",
+        "palletpilot.executor.cli_segmentation",
+    ):
         importlib.import_module(module).add_parsers(sub)
+    for extend in extensions:
+        extend(sub)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `palletpilot` console script; returns the exit code."""
-    parser = build_parser()
+def main(argv: Sequence[str] | None = None, extensions: Sequence[Extension] = ()) -> int:
+    """Run the command line; returns the exit code. `palletpilot.cli.main` adds the `bench` extension."""
+    parser = build_parser(extensions)
     args, extra = parser.parse_known_args(argv)
     try:
-        if args.command == "bench":
-            return cmd_bench(args, extra)
-        if extra:
-            parser.error(f"unrecognized arguments: {' '.join(extra)}")
-        return args.func(args)
+        with warnings.catch_warnings():
+            if not sys.warnoptions:  # library warnings (numpy, matplotlib) are not the operator's; -W shows them
+                warnings.simplefilter("ignore")
+            if getattr(args, "takes_extra", False):
+                return int(args.func(args, extra))
+            if extra:
+                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+            return int(args.func(args))
+    except OutputError as exc:
+        for line in exc.problems:
+            print(f"error: {line}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     except PalletpilotError as exc:
         for line in exc.problems:
             print(line, file=sys.stderr)

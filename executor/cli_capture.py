@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from perception.errors import PerceptionError
+from palletpilot.perception.errors import PerceptionError
 
 DEFAULT_COUNT = 10
 
@@ -27,7 +27,7 @@ def _filters(text: str | None) -> list[str]:
 
 def cmd_capture(args: argparse.Namespace) -> int:
     """Save frame bundles from a live camera or a recording into `--out`; return the exit code."""
-    from perception.realsense import capture_from_camera, extract_recording
+    from palletpilot.perception.realsense import capture_from_camera, extract_recording
 
     if args.count is not None and args.count < 1:
         raise PerceptionError(f"capture: --count must be >= 1, got {args.count}")

@@ -16,9 +16,9 @@ import importlib
 import json
 import math
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle
-from perception.specs import pallet_type
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.specs import pallet_type
 
 
 def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
@@ -26,7 +26,7 @@ def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
     if frame.labels is not None:
         return frame
     try:
-        seg = importlib.import_module("perception.segmentation")
+        seg = importlib.import_module("palletpilot.perception.segmentation")
     except ImportError:
         raise PerceptionError(
             f"{where}: labels: missing, and no segmentation model is available (labels are required)"
@@ -38,9 +38,9 @@ def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
 
 def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     """Estimate the pallet pose in one frame bundle and print it."""
-    from perception.calibration_io import load_calibration
-    from perception.frames import load_bundle
-    from perception.pallet import PalletNotFound, estimate_pallet
+    from palletpilot.perception.calibration_io import load_calibration
+    from palletpilot.perception.frames import load_bundle
+    from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
 
     frame = _with_labels(load_bundle(args.frame), args.frame)
     calibration = load_calibration(args.calibration)

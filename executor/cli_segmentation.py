@@ -29,7 +29,7 @@ def _print(result: dict, as_json: bool) -> None:
 
 def cmd_segment_dataset(args: argparse.Namespace) -> int:
     """Render `--frames` simulator frames into OUT_DIR as `frame_%05d.npz`."""
-    from sim.dataset import generate_dataset
+    from palletpilot.sim.dataset import generate_dataset
 
     paths = generate_dataset(args.out_dir, args.frames, seed=args.seed, start=args.start, mounts=args.mounts)
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
@@ -37,7 +37,7 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
 
 
 def _files(args: argparse.Namespace) -> list[Path]:
-    from perception.errors import PerceptionError
+    from palletpilot.perception.errors import PerceptionError
 
     files = sorted(Path(args.data_dir).glob("*.npz"))[: args.frames]
     if not files:
@@ -47,7 +47,7 @@ def _files(args: argparse.Namespace) -> list[Path]:
 
 def cmd_segment_eval(args: argparse.Namespace) -> int:
     """Per-class IoU of the model over the bundles in DATA_DIR."""
-    from perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
+    from palletpilot.perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
 
     result = evaluate_segmenter(OnnxSegmenter(args.model), _files(args))
     print(json.dumps(result, indent=2) if args.json else format_iou(result))
@@ -56,8 +56,8 @@ def cmd_segment_eval(args: argparse.Namespace) -> int:
 
 def cmd_segment_time(args: argparse.Namespace) -> int:
     """Segmentation time per frame (ms) over the bundles' RGB images."""
-    from perception.frames import load_bundle
-    from perception.segmentation import OnnxSegmenter, benchmark
+    from palletpilot.perception.frames import load_bundle
+    from palletpilot.perception.segmentation import OnnxSegmenter, benchmark
 
     seg = OnnxSegmenter(args.model)
     rgbs = [b.rgb for b in map(load_bundle, _files(args)) if b.rgb is not None]
@@ -67,7 +67,7 @@ def cmd_segment_time(args: argparse.Namespace) -> int:
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     """Add the `segment` command and its subcommands to `palletpilot`'s subparsers."""
-    from perception.segmentation import DEFAULT_MODEL
+    from palletpilot.perception.segmentation import DEFAULT_MODEL
 
     seg = subparsers.add_parser("segment", help="segmentation datasets, evaluation and timing")
     seg_sub = seg.add_subparsers(dest="segment_command", required=True)

@@ -23,10 +23,10 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from control.vehicle import VehicleParams
-from geometry import PalletpilotError
-from geometry.fileio import load_yaml_model
-from roadmap import NodeType, Planner, Roadmap, RoadmapError
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.geometry import PalletpilotError
+from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.roadmap import NodeType, Planner, Roadmap, RoadmapError
 
 
 class MissionError(PalletpilotError):

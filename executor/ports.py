@@ -2,6 +2,8 @@
 
 `sim.simulator.Simulator` implements `VehiclePort` and `CameraSource` directly; a robot adapter
 implements them for the real forklift. `LocalPerception` is the in-process `PerceptionService`.
+The `Clock` port is in `executor.clock`. Times (`localization_stamp`, frame stamps) are on the
+runner's clock, in seconds.
 """
 
 from __future__ import annotations
@@ -9,12 +11,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
-from geometry import SE2
-from perception.calibration import Calibrator, Method
-from perception.calibration_io import Calibration
-from perception.frames import FrameBundle
-from perception.pallet import PalletEstimate, estimate_pallet
-from perception.specs import ForkGeometry, PalletType
+from palletpilot.geometry import SE2
+from palletpilot.perception.calibration import Calibrator, Method
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.pallet import PalletEstimate, estimate_pallet
+from palletpilot.perception.segmentation import SegmentationService
+from palletpilot.perception.specs import ForkGeometry, PalletType
 
 
 @runtime_checkable
@@ -24,11 +27,18 @@ class VehiclePort(Protocol):
     def localization(self) -> SE2:
         """`T_world_forklift` from localization."""
 
+    def localization_stamp(self) -> float:
+        """When the last localization fix was taken (s, the runner's clock): the watchdog's input."""
+
     def drive(self, speed: float, steering: float) -> None:
         """Drive command: speed (m/s, negative in reverse), steering angle (rad)."""
 
     def stop(self) -> None:
-        """Brake to a standstill."""
+        """Brake to a standstill (service brake, the drive controller's own deceleration)."""
+
+    def emergency_stop(self) -> None:
+        """The truck's safety stop: brake at the emergency deceleration whatever the drive commands,
+        latched until the run ends (the safety PLC's stop input on a robot)."""
 
     @property
     def speed(self) -> float:
@@ -77,7 +87,7 @@ class LocalPerception:
         forks: ForkGeometry,
         pallet: PalletType | None = None,
         method: Method = "model",
-        segmenter: object | None = None,
+        segmenter: SegmentationService | None = None,
     ) -> None:
         self.forks = forks
         self.pallet = pallet or PalletType.eur()
@@ -87,7 +97,7 @@ class LocalPerception:
     def _labelled(self, frame: FrameBundle) -> FrameBundle:
         if frame.labels is not None or self.segmenter is None:
             return frame
-        from perception.segmentation import ensure_labels
+        from palletpilot.perception.segmentation import ensure_labels
 
         return ensure_labels(frame, self.segmenter)
 

@@ -5,11 +5,15 @@ end time (simulated s), its states with their times and outcomes, the calibratio
 estimates against the node, the temporary nodes, and (in the simulator) the true pallet poses.
 `trajectory.png`: the map, the planned paths, the driven trajectory (localization), the true and the
 estimated pallet poses.
+
+Both are written atomically (`geometry.fileio.write_atomic`), the PNG first and report.json last, so a
+report.json on disk always belongs to a run that finished writing. JSON is strict (RFC 8259): numbers
+that are not finite (a beam that sees nothing: infinite range) are written as `null`.
 """
 
 from __future__ import annotations
 
-import json
+import io
 import math
 from pathlib import Path
 from typing import Any
@@ -20,10 +24,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from geometry import SE2
-from perception.specs import PalletType
-from roadmap import Roadmap
-from roadmap.draw import draw_roadmap
+from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import write_atomic, write_json
+from palletpilot.perception.specs import PalletType
+from palletpilot.roadmap import Roadmap
+from palletpilot.roadmap.draw import draw_roadmap
+
+REPORT_FILES = ("report.json", "trajectory.png", "events.jsonl")
+"""The files a run writes into its report folder (a new run removes them first)."""
 
 
 def summary(success: bool, results: list) -> dict[str, Any]:
@@ -42,8 +50,10 @@ def write_report(
     truth_pallets: list[SE2] | None = None,
     extra: dict[str, Any] | None = None,
 ) -> Path:
-    """Write `report.json` and `trajectory.png` into `folder`; returns the JSON path."""
-    folder.mkdir(parents=True, exist_ok=True)
+    """Write `trajectory.png`, then `report.json` into `folder`, atomically; returns the JSON path.
+
+    Raises `OutputError` (one line) when a file cannot be written; an older file stays as it was.
+    """
     doc = {
         "mission": mission_name,
         "success": success,
@@ -61,10 +71,9 @@ def write_report(
             for r in results
         ],
     }
-    path = folder / "report.json"
-    path.write_text(json.dumps(doc, indent=2) + "\n")
-    _plot(folder / "trajectory.png", mission_name, success, results, roadmap, trajectory, planned_paths, truth_pallets)
-    return path
+    png = _plot(mission_name, success, results, roadmap, trajectory, planned_paths, truth_pallets)
+    write_atomic(folder / "trajectory.png", png)
+    return write_json(folder / "report.json", doc)
 
 
 def _pallet_outline(pose: SE2, pallet: PalletType) -> np.ndarray:
@@ -73,7 +82,6 @@ def _pallet_outline(pose: SE2, pallet: PalletType) -> np.ndarray:
 
 
 def _plot(
-    out: Path,
     name: str,
     success: bool,
     results: list,
@@ -81,7 +89,8 @@ def _plot(
     trajectory: list[tuple[float, float, float, float]],
     planned: list[list[tuple[float, float]]],
     truth: list[SE2] | None,
-) -> None:
+) -> bytes:
+    """The trajectory plot as PNG bytes."""
     fig, ax = plt.subplots(figsize=(11, 9), dpi=110)
     draw_roadmap(roadmap, ax, labels=True)
     for i, path in enumerate(planned):
@@ -105,5 +114,7 @@ def _plot(
     verdict = "succeeded" if success else "failed: " + ", ".join(f"{r.type} {r.reason}" for r in results if r.reason)
     ax.set_title(f"{name}: {verdict}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(out)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
     plt.close(fig)
+    return buf.getvalue()

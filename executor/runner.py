@@ -1,88 +1,57 @@
-"""The runner: a mission's tasks in order over the vehicle and perception ports, at the 20 Hz control tick.
+"""The runner: a mission's tasks in order over the vehicle and perception ports, at the control tick.
 
-Time comes from a `Clock`: `SimClock` advances the simulator by one tick per step (deterministic,
-much faster than real time), a wall clock would sleep to the next tick on the robot. Each task is a
-`transitions` machine (`executor.tasks`); the runner calls the current state's behaviour every tick,
-enforces the state's timeout, fires the trigger it returns and records everything: events (JSON
-lines), states with start and end times, calibrations, pallet estimates, attempts, tracking errors
-and the driven trajectory. On any failure the vehicle stops and the task ends with a reason code;
-`pause()`, `resume()` and `cancel()` may be called between ticks (e.g. from a signal handler).
+Time comes from a `Clock` (`executor.clock`): simulated or wall. Each task is a `transitions` machine
+(`executor.tasks`); every tick the runner checks the operator's controls (pause, cancel), the
+watchdogs (`executor.watchdog`) and the vehicle's faults, calls the current state's behaviour, enforces
+the state's timeout (paused time does not count) and fires the trigger it returns.
+
+Fail-safe: whatever goes wrong in a tick (a task failure, any exception, a perception crash, a failed
+write), the behaviour's `stop()` runs, the vehicle is brought to a standstill (the truck's safety stop
+while it moves, `VehiclePort.emergency_stop`), and the task ends with a reason: `internal_error` with
+the exception for the unexpected ones. `run()` never raises an `Exception`.
+
+Progress is journalled (`executor.journal`) at every state change when a journal is given; a runner
+built with `resume=` continues from the last checkpoint (`executor.resume`).
+
+Public API: `Runner`, `TaskResult`, `SimClock`, `WallClock` (re-exported from `executor.clock`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
-import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+import traceback
+from collections.abc import Callable, Sequence
 from typing import Any, TextIO
 
-from control.follower import Follower
-from control.mpc import MpcFollower
-from control.vehicle import VehicleParams
-from executor.mission import Mission
-from executor.ports import PerceptionService, VehiclePort
-from executor.tasks import (
-    CANCELLED,
-    TIMEOUT,
-    Behaviour,
-    Context,
-    Settings,
-    TaskFailed,
-    behaviours,
-    build_machine,
-)
-from perception.frames import FrameBundle
-from perception.specs import ForkGeometry, PalletType
-from roadmap import Planner, Roadmap
+from palletpilot.control.follower import Follower
+from palletpilot.control.mpc import MpcFollower
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.executor.behaviour import Behaviour, Context, Settings
+from palletpilot.executor.clock import Clock, SimClock, WallClock
+from palletpilot.executor.controls import Controls
+from palletpilot.executor.errors import CANCELLED, COLLISION, INTERNAL_ERROR, SENSOR_TIMEOUT, TIMEOUT, TaskFailed
+from palletpilot.executor.jobs import Jobs
+from palletpilot.executor.mission import Mission
+from palletpilot.executor.ports import PerceptionService, VehiclePort
+from palletpilot.executor.progress import Progress
+from palletpilot.executor.results import TaskResult
+from palletpilot.executor.resume import Checkpointer, ResumePoint
+from palletpilot.executor.tasks import behaviours, build_machine
+from palletpilot.executor.watchdog import CommandedVehicle, WatchdogLimits, Watchdogs
+from palletpilot.geometry.fileio import dumps_json
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.specs import ForkGeometry, PalletType
+from palletpilot.roadmap import Planner, Roadmap
 
-CONTROL_DT = 0.05
+__all__ = ["Runner", "SimClock", "TaskResult", "WallClock"]
 
-
-class SimClock:
-    """Simulated time: each tick advances the simulator by `dt` seconds."""
-
-    def __init__(self, step: Callable[[float], None], dt: float = CONTROL_DT) -> None:
-        self._step = step
-        self.dt = dt
-        self.t = 0.0
-
-    def now(self) -> float:
-        """Seconds since the start."""
-        return self.t
-
-    def tick(self) -> None:
-        """Advance one control period."""
-        self._step(self.dt)
-        self.t += self.dt
-
-
-@dataclass
-class TaskResult:
-    """How one task went, for the report."""
-
-    index: int
-    type: str
-    node: str | None
-    result: str = "pending"
-    reason: str | None = None
-    message: str | None = None
-    attempts: int = 0
-    start_s: float = 0.0
-    end_s: float = 0.0
-    states: list[dict[str, Any]] = field(default_factory=list)
-    record: dict[str, Any] = field(default_factory=dict)
-
-    def summary(self) -> dict[str, Any]:
-        """`type`, `node`, `result`, `reason`, `attempts` (the `--json` summary)."""
-        return {
-            "type": self.type,
-            "node": self.node,
-            "result": self.result,
-            "reason": self.reason,
-            "attempts": self.attempts,
-        }
+STANDSTILL_SPEED = 1e-3
+"""m/s: the vehicle stands below this."""
+QUICK_STOP_SPEED = 0.05
+"""m/s: a failure above this uses the truck's safety stop, below it the service brake."""
+_PAUSED = "__paused__"
+_DRIVING_STATES = ("drive", "drive_to_pre_pallet", "drive_to_pre_drop", "approach", "enter", "reverse_out", "back_off")
 
 
 class Runner:
@@ -95,7 +64,7 @@ class Runner:
         vehicle: VehiclePort,
         perception: PerceptionService | None,
         grab: Callable[[], FrameBundle],
-        clock: SimClock,
+        clock: Clock,
         params: VehicleParams,
         forks: ForkGeometry,
         start_node: str,
@@ -103,21 +72,36 @@ class Runner:
         follower: Follower | None = None,
         events: TextIO | None = None,
         progress: TextIO | None = None,
+        controls: Controls | None = None,
+        checkpointer: Checkpointer | None = None,
+        resume: ResumePoint | None = None,
+        listeners: Sequence[Callable[[str, dict[str, Any], float], None]] = (),
+        watchdog_limits: WatchdogLimits | None = None,
     ) -> None:
         self.mission = mission
         self.clock = clock
         self.settings = settings or Settings()
         self.events = events
-        self.progress = progress
+        self.progress = Progress(progress) if progress is not None else None
+        self.controls = controls or Controls()
+        self.checkpointer = checkpointer
+        self.listeners = list(listeners)
         self.results: list[TaskResult] = []
         self.trajectory: list[tuple[float, float, float, float]] = []  # t, x, y, yaw of localization
-        self._paused = False
-        self._cancelled = False
+        self.stops: list[dict[str, Any]] = []  # every failure: when, at what speed, when the vehicle stood
+        self.write_errors: list[str] = []
+        self.watchdogs = Watchdogs(params, watchdog_limits)
+        self._grab = grab
+        self._paused_total = 0.0
+        self._paused_since: float | None = None
+        self._no_frame_since: float | None = None
+        self._last_fork_height: float | None = None
+        self.vehicle = CommandedVehicle(vehicle)
+        self.resume_point = resume
         start = roadmap.node(start_node)
         self.ctx = Context(
-            vehicle=vehicle,
+            vehicle=self.vehicle,
             perception=perception,
-            grab=grab,
             roadmap=roadmap,
             planner=Planner(roadmap),
             follower=follower or MpcFollower(params),
@@ -125,130 +109,140 @@ class Runner:
             forks=forks,
             pallet_type=PalletType.eur(),
             settings=self.settings,
-            now=clock.now,
+            now=self.task_time,
             log=self._log,
             at_node=start_node,
             heading=start.pose.yaw,
+            jobs=Jobs(clock.deterministic, clock.now),
+            clock_now=clock.now,
+            frame=self._frame,
         )
+        if resume is not None:
+            resume.restore_runner(self)
 
     # -- control from outside ----------------------------------------------------------------
     def pause(self) -> None:
-        """Hold the vehicle still until `resume()`; the current state's timeout does not run meanwhile."""
-        self._paused = True
+        """Hold the vehicle still until `resume()`; timeouts and progress checks freeze meanwhile."""
+        self.controls.pause()
 
     def resume(self) -> None:
         """Continue after `pause()`."""
-        self._paused = False
+        self.controls.resume()
 
     def cancel(self) -> None:
         """Stop the vehicle and end the mission (the current task fails with reason `cancelled`)."""
-        self._cancelled = True
+        self.controls.cancel()
+
+    def task_time(self) -> float:
+        """The clock less the time spent paused (s): what behaviours and path followers see."""
+        paused = self._paused_total
+        if self._paused_since is not None:
+            paused += self.clock.now() - self._paused_since
+        return self.clock.now() - paused
 
     # -- recording ---------------------------------------------------------------------------
     def _log(self, event: str, **data: Any) -> None:
+        t = self.clock.now()
         if self.events is not None:
-            doc = {"t": round(self.clock.now(), 3), "event": event, **data}
-            self.events.write(json.dumps(doc, default=_jsonable) + "\n")
-            self.events.flush()  # a line per state change: cheap, and `tail -f events.jsonl` follows the run
+            self.events.write(dumps_json({"t": round(t, 3), "event": event, **data}) + "\n")
+            self.events.flush()  # `tail -f events.jsonl` follows the run
+        for listener in self.listeners:
+            listener(event, data, t)
 
     def _show(self, task: TaskResult, state: str) -> None:
         if self.progress is None:
             return
         togo = ""
-        follower = self.ctx.follower
-        if state in (
-            "drive",
-            "drive_to_pre_pallet",
-            "drive_to_pre_drop",
-            "approach",
-            "enter",
-            "reverse_out",
-            "back_off",
-        ):
-            remaining = getattr(follower, "distance_to_go", None)
+        if state in _DRIVING_STATES:
+            remaining = getattr(self.ctx.follower, "distance_to_go", None)
             if remaining is not None:
                 togo = f" {remaining:5.1f} m to go"
+        paused = " | PAUSED" if self._paused_since is not None else ""
         line = (
-            f"\r[{self.clock.now():7.1f} s] task {task.index + 1}/{len(self.mission.tasks)} {task.type}"
-            f" {task.node or ''} | {state} | attempt {max(task.attempts, 1)}{togo}   "
+            f"[{self.clock.now():7.1f} s] task {task.index + 1}/{len(self.mission.tasks)} {task.type}"
+            f" {task.node or ''} | {state} | attempt {max(task.attempts, 1)}{togo}{paused}"
         )
-        self.progress.write(line)
-        self.progress.flush()
+        self.progress.show((task.index, state, bool(paused)), line)
 
     # -- running -----------------------------------------------------------------------------
     def run(self) -> bool:
-        """Run every task in order; stops at the first failure. True when all succeeded."""
-        self._log("mission_start", name=self.mission.name, tasks=len(self.mission.tasks))
-        ok = True
-        for i, task in enumerate(self.mission.tasks):
-            result = self._run_task(i, task)
-            self.results.append(result)
-            if result.result != "succeeded":
-                ok = False
-                break
-        self._brake_to_standstill()
-        self._log("mission_end", success=ok)
+        """Run every task in order; stops at the first failure. True when all succeeded. Never raises."""
+        ok = False
+        try:
+            first, state = (
+                (0, None) if self.resume_point is None else (self.resume_point.task_index, self.resume_point.state)
+            )
+            if self.resume_point is None:
+                self._log("mission_start", name=self.mission.name, tasks=len(self.mission.tasks))
+            else:
+                self._log("mission_resumed", task=first, state=state, resumes=self.resume_point.resumes)
+            ok = True
+            for i in range(first, len(self.mission.tasks)):
+                result = self._run_task(i, self.mission.tasks[i], state if i == first else None)
+                self.results.append(result)
+                if result.result != "succeeded":
+                    ok = False
+                    break
+                self._checkpoint(i + 1, None, None)
+        except Exception as exc:  # outside a task's tick loop: still stop, still report
+            ok = False
+            self._internal_error(exc, None)
+        finally:
+            self._stop_safely("mission end")
+            self.ctx.jobs.close()
+        with contextlib.suppress(Exception):
+            self._log("mission_end", success=ok)
         if self.progress is not None:
-            self.progress.write("\n")
+            self.progress.close()
         return ok
 
-    def _run_task(self, index: int, task: Any) -> TaskResult:
+    def _run_task(self, index: int, task: Any, start_state: str | None) -> TaskResult:
         ctx = self.ctx
         kind = task.type if task.type != "pickup" or self.settings.adapt else "pickup_no_adapt"
         table = behaviours(kind, self.settings)
         node = getattr(task, "node", None)
         result = TaskResult(index, task.type, node, start_s=self.clock.now())
-        ctx.task, ctx.attempts, ctx.calibration, ctx.estimate = task, 0, None, None
+        resuming = start_state is not None and self.resume_point is not None
+        if not resuming:
+            ctx.task, ctx.attempts, ctx.calibration, ctx.estimate = task, 0, None, None
+            ctx.temporary = []
+            if node is not None and task.type in ("pickup", "delivery"):
+                ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
+            self._log("task_start", index=index, type=task.type, node=node)
+        ctx.task = task
         ctx.record = result.record
-        if node is not None and task.type in ("pickup", "delivery"):
-            ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
-        model = build_machine(kind)
-        self._log("task_start", index=index, type=task.type, node=node)
+        model = build_machine(kind, initial=start_state)
         with contextlib.ExitStack() as stack:
             ctx.overlay = stack.enter_context(ctx.roadmap.overlay())  # temporary nodes vanish with the task
+            if resuming:
+                assert self.resume_point is not None
+                self.resume_point.restore_task(self, result)
             behaviour: Behaviour | None = None
-            entered = self.clock.now()
-            active = 0.0  # time spent in the state while not paused
+            entered, active = self.clock.now(), 0.0  # active: time in the state while not paused
             while model.state not in ("succeeded", "failed"):
                 state = model.state
+                trigger: str | None = None
                 try:
                     if behaviour is None:
+                        self._checkpoint(index, state, result)
                         behaviour = table[state]()
                         entered, active = self.clock.now(), 0.0
                         self._log("state_start", task=index, state=state)
                         behaviour.start(ctx)
-                    if self._cancelled:
-                        raise TaskFailed(CANCELLED, "cancelled by the operator")
-                    if self._paused:
-                        ctx.vehicle.stop()
-                        self.clock.tick()
-                        continue
-                    trigger = behaviour.update(ctx)
-                    if trigger is None and active > behaviour.timeout_s:
-                        raise TaskFailed(TIMEOUT, f"state '{state}' timed out after {behaviour.timeout_s:.0f} s")
-                    faults = ctx.vehicle.faults()
-                    if faults:
-                        raise TaskFailed("collision", "; ".join(faults))
+                    trigger = self._tick(behaviour, state, active)
                 except TaskFailed as exc:
-                    trigger = "fail"
-                    result.reason, result.message = exc.reason, str(exc)
-                    self._log("task_failed", task=index, state=state, reason=exc.reason, message=str(exc))
-                if trigger is None:
-                    self._record_tick()
-                    self._show(result, state)
+                    trigger = self._fail(result, state, exc.reason, str(exc))
+                except Exception as exc:
+                    trigger = self._internal_error(exc, result, state)
+                if trigger is None or trigger == _PAUSED:
+                    self._record_tick(result, state)
                     self.clock.tick()
-                    active += self.clock.dt
+                    if trigger is None:
+                        active += self.clock.dt
                     continue
-                if behaviour is not None:
-                    behaviour.stop(ctx)
-                result.states.append(
-                    {
-                        "state": state,
-                        "start_s": round(entered, 3),
-                        "end_s": round(self.clock.now(), 3),
-                        "outcome": trigger,
-                    }
-                )
+                self._leave(behaviour, trigger)
+                end = round(self.clock.now(), 3)
+                result.states.append({"state": state, "start_s": round(entered, 3), "end_s": end, "outcome": trigger})
                 self._log("state_end", task=index, state=state, outcome=trigger)
                 if state == "estimate_pallet" and trigger == "misaligned":
                     ctx.node_before = self._node_before()
@@ -256,8 +250,14 @@ class Runner:
                 behaviour = None
                 if state == "drive_to_pre_pallet" and trigger == "done":
                     ctx.node_before = self._node_before()
-            self._brake_to_standstill()
-            if model.state == "failed" and self.settings.return_on_failure and ctx.pre_node and not self._cancelled:
+            self._stop_safely(result.reason or "task end")
+            if (
+                model.state == "failed"
+                and self.settings.return_on_failure
+                and ctx.pre_node
+                and not self.controls.cancelled
+                and result.reason not in (COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR)
+            ):
                 self._return_to_pre_pallet()
         result.result = model.state
         result.attempts = ctx.attempts
@@ -265,14 +265,132 @@ class Runner:
         self._log("task_end", task=index, result=result.result, reason=result.reason)
         return result
 
-    def _brake_to_standstill(self, limit_s: float = 10.0) -> None:
-        """Command a stop and let time run until the vehicle stands (|speed| < 1 mm/s)."""
-        vehicle = self.ctx.vehicle
-        vehicle.stop()
-        t_end = self.clock.now() + limit_s
-        while abs(vehicle.speed) >= 1e-3 and self.clock.now() < t_end:
+    def _tick(self, behaviour: Behaviour, state: str, active: float) -> str | None:
+        """One control tick of a state: controls, watchdogs, faults, then the behaviour."""
+        ctx, vehicle = self.ctx, self.vehicle
+        if self.controls.cancelled:
+            raise TaskFailed(CANCELLED, self.controls.cancel_reason or "cancelled by the operator")
+        self._track_motion()
+        self.watchdogs.check(self.clock.now(), vehicle, self.clock)
+        faults = vehicle.faults()
+        if faults:
+            raise TaskFailed(COLLISION, "; ".join(faults))
+        if self.controls.paused:
+            if self._paused_since is None:
+                self._paused_since = self.clock.now()
+                vehicle.stop()
+                vehicle.set_fork_height(vehicle.fork_height)  # hold the forks where they are
+                self._log("paused", state=state)
+                if self.progress is not None:
+                    self.progress.note(f"[{self.clock.now():7.1f} s] paused in {state} (SIGUSR2 resumes)")
             vehicle.stop()
-            self.clock.tick()
+            return _PAUSED
+        if self._paused_since is not None:
+            self._paused_total += self.clock.now() - self._paused_since
+            self._paused_since = None
+            self.watchdogs.reset()
+            self._log("resumed", state=state)
+            if self.progress is not None:
+                self.progress.note(f"[{self.clock.now():7.1f} s] resumed in {state}")
+            behaviour.resume(ctx)
+        trigger = behaviour.update(ctx)
+        if trigger is None and active > behaviour.timeout_s:
+            raise TaskFailed(TIMEOUT, f"state '{state}' timed out after {behaviour.timeout_s:.0f} s")
+        return trigger
+
+    def _fail(self, result: TaskResult | None, state: str | None, reason: str, message: str) -> str:
+        if result is not None and result.reason is None:
+            result.reason, result.message = reason, message
+        self.stops.append({"t_s": round(self.clock.now(), 3), "reason": reason, "speed": self._speed()})
+        with contextlib.suppress(Exception):
+            self._log(
+                "task_failed",
+                task=None if result is None else result.index,
+                state=state,
+                reason=reason,
+                message=message,
+            )
+        self._stop_safely(reason)
+        return "fail"
+
+    def _internal_error(self, exc: BaseException, result: TaskResult | None, state: str | None = None) -> str:
+        message = f"{type(exc).__name__}: {exc}"
+        with contextlib.suppress(Exception):
+            self._log("internal_error", state=state, traceback=traceback.format_exc(limit=8))
+        if result is None and self.results:
+            result = self.results[-1]
+        return self._fail(result, state, INTERNAL_ERROR, message)
+
+    def _leave(self, behaviour: Behaviour | None, trigger: str) -> None:
+        """Run the behaviour's `stop()`; an exception there is logged and the vehicle stopped anyway."""
+        if behaviour is None:
+            return
+        try:
+            behaviour.stop(self.ctx)
+        except Exception as exc:
+            with contextlib.suppress(Exception):
+                self._log("stop_failed", error=f"{type(exc).__name__}: {exc}")
+            self._stop_safely("a behaviour's stop failed")
+
+    def _speed(self) -> float | None:
+        try:
+            return round(float(self.vehicle.speed), 4)
+        except Exception:
+            return None
+
+    def _stop_safely(self, why: str, limit_s: float = 10.0) -> None:
+        """Bring the vehicle to a standstill (safety stop while it moves); never raises."""
+        vehicle = self.vehicle
+        try:
+            if abs(vehicle.speed) > QUICK_STOP_SPEED:
+                vehicle.emergency_stop()
+                self._log("safety_stop", why=why, speed=round(vehicle.speed, 3))
+            else:
+                vehicle.stop()
+            t_end = self.clock.now() + limit_s
+            while abs(vehicle.speed) >= STANDSTILL_SPEED and self.clock.now() < t_end:
+                vehicle.stop()
+                self.clock.tick()
+            standing = abs(vehicle.speed) < STANDSTILL_SPEED
+        except Exception as exc:
+            standing = False
+            with contextlib.suppress(Exception):
+                self._log("stop_error", error=f"{type(exc).__name__}: {exc}")
+        if self.stops and "standstill_s" not in self.stops[-1]:
+            self.stops[-1]["standstill_s"] = round(self.clock.now(), 3) if standing else None
+        if not standing:
+            with contextlib.suppress(Exception):
+                self._log("vehicle_not_stopped", why=why)
+
+    def _track_motion(self) -> None:
+        """Remember when the vehicle or its forks last moved (perception results must be newer)."""
+        v = self.vehicle
+        height = v.fork_height
+        moved_forks = self._last_fork_height is not None and abs(height - self._last_fork_height) > 1e-3
+        if abs(v.speed) > STANDSTILL_SPEED or moved_forks:
+            self.ctx.last_motion_s = self.clock.now()
+        self._last_fork_height = height
+
+    def _frame(self) -> FrameBundle | None:
+        """A fresh camera frame, or None this tick; `sensor_timeout` when none came for too long."""
+        now = self.clock.now()
+        limit = self.watchdogs.limits.camera_max_age_s
+        try:
+            frame = self._grab()
+            self.watchdogs.check_frame(frame, now)
+        except (PerceptionError, TaskFailed) as exc:
+            if self._no_frame_since is None:
+                self._no_frame_since = now
+            waited = now - self._no_frame_since
+            if waited > limit:
+                raise TaskFailed(SENSOR_TIMEOUT, f"no fresh camera frame for {waited:.2f} s: {exc}") from None
+            return None
+        self._no_frame_since = None
+        return frame
+
+    def _checkpoint(self, index: int, state: str | None, result: TaskResult | None) -> None:
+        if self.checkpointer is not None:
+            self.checkpointer.checkpoint(self, index, state, result)
 
     def _node_before(self) -> str | None:
         """The node before the pre-pallet node: on the route that reached it, else a node joined both ways."""
@@ -288,15 +406,17 @@ class Runner:
                 return u
         return None
 
-    def _record_tick(self) -> None:
-        pose = self.ctx.vehicle.localization()
-        if not self.trajectory or self.clock.now() - self.trajectory[-1][0] >= 0.2:
-            self.trajectory.append((self.clock.now(), pose.x, pose.y, pose.yaw))
+    def _record_tick(self, result: TaskResult, state: str) -> None:
+        pose = self.vehicle.localization()
+        now = self.clock.now()
+        if not self.trajectory or now - self.trajectory[-1][0] >= 0.2:
+            self.trajectory.append((now, pose.x, pose.y, pose.yaw))
+        self._show(result, state)
 
     def _return_to_pre_pallet(self) -> None:
         """Optional after a failure: drive back to the pre-pallet node (best effort, logged)."""
         ctx = self.ctx
-        from executor.tasks import FollowRoute
+        from palletpilot.executor.driving import FollowRoute
 
         if ctx.at_node == ctx.pre_node:
             return
@@ -304,18 +424,15 @@ class Runner:
             behaviour = FollowRoute(lambda c: c.pre_node)
             behaviour.start(ctx)
             t_end = self.clock.now() + behaviour.timeout_s
-            while self.clock.now() < t_end and behaviour.update(ctx) is None and not ctx.vehicle.faults():
+            while (
+                self.clock.now() < t_end
+                and not self.controls.cancelled
+                and behaviour.update(ctx) is None
+                and not self.vehicle.faults()
+            ):
                 self.clock.tick()
             behaviour.stop(ctx)
             self._log("returned_to_pre_pallet", node=ctx.at_node)
         except Exception as exc:
-            ctx.vehicle.stop()
             self._log("return_failed", error=str(exc))
-
-
-def _jsonable(obj: object) -> object:
-    if hasattr(obj, "tolist"):
-        return obj.tolist()  # type: ignore[no-any-return]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return str(obj)
+        self._stop_safely("return to the pre-pallet node")

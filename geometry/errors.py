@@ -21,3 +21,10 @@ class PalletpilotError(Exception):
 
 class GeometryError(PalletpilotError):
     """A pose or transform that cannot be built (wrong shape, non-rigid matrix)."""
+
+
+class OutputError(PalletpilotError):
+    """An output file could not be written (full disk, no permission); the old file, if any, is intact.
+
+    The CLI exits with code 3 for it, apart from 1 (mission failed) and 2 (bad input).
+    """

@@ -17,8 +17,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from geometry.angles import wrap_angle
-from geometry.errors import GeometryError
+from palletpilot.geometry.angles import wrap_angle
+from palletpilot.geometry.errors import GeometryError
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:

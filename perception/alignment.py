@@ -28,9 +28,15 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
-from geometry import SE2, SE3
-from geometry.angles import wrap_angle
-from perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, node_pose_for_pallet, pallet_pose_at_node
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.angles import wrap_angle
+from palletpilot.perception.specs import (
+    ENTRY_GAP_M,
+    ForkGeometry,
+    PalletType,
+    node_pose_for_pallet,
+    pallet_pose_at_node,
+)
 
 
 class PalletNodeLike(Protocol):

@@ -43,12 +43,12 @@ import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from geometry import SE3
-from perception.calibration_io import R_LEVEL, Calibration
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass
-from perception.pointcloud import check_intrinsics, class_mask, deproject
-from perception.specs import ForkGeometry
+from palletpilot.geometry import SE3
+from palletpilot.perception.calibration_io import R_LEVEL, Calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.pointcloud import check_intrinsics, class_mask, deproject
+from palletpilot.perception.specs import ForkGeometry
 
 Method = Literal["model", "paper"]
 METHODS: tuple[Method, ...] = ("model", "paper")
@@ -206,6 +206,7 @@ def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, tip_window: float 
     """
     depth = data.frame.depth
     shape = depth.shape
+    assert data.frame.labels is not None  # `_frame_data` rejects frames without labels
     # Every edge lies near the border of the fork labels (off by a few pixels at most): classify
     # only a band of +-7 px around it.
     labels = (data.frame.labels == SemanticClass.FORKS).astype(np.uint8)
@@ -402,7 +403,7 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
 
 def _vanishing_point(fd: _FrameData) -> np.ndarray:
     """Least-squares intersection (pixels) of the lines fitted to the left and right edges of both forks."""
-    mask = np.zeros(fd.frame.depth.shape, np.uint8)
+    mask: np.ndarray = np.zeros(fd.frame.depth.shape, np.uint8)
     mask[fd.fork_pixels[:, 0], fd.fork_pixels[:, 1]] = 1
     _, comp, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     order = np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2] + 1

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from geometry import SE3, GeometryError
-from perception.errors import PerceptionError
+from palletpilot.geometry import SE3, GeometryError
+from palletpilot.perception.errors import PerceptionError
 
 R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 """Rotation of a level camera looking along forklift +x: optical axes in the forklift frame (paper eq. 6)."""

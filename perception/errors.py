@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from geometry import PalletpilotError
+from palletpilot.geometry import PalletpilotError
 
 
 class PerceptionError(PalletpilotError):

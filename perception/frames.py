@@ -19,14 +19,17 @@ validates every key and raises `PerceptionError` with one line naming the file a
 
 from __future__ import annotations
 
+import io
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
 
-from perception.errors import PerceptionError
+from palletpilot.geometry.fileio import write_atomic
+from palletpilot.perception.errors import PerceptionError
 
 
 class SemanticClass(IntEnum):
@@ -57,7 +60,7 @@ def _check_bundle(
     labels: object,
     rgb: object,
     fork_height: object,
-    truth: dict[str, object],
+    truth: Mapping[str, object],
     where: str,
 ) -> None:
     """Raise `PerceptionError` (`where: key: problem`) for the first entry that breaks the contract."""
@@ -140,6 +143,8 @@ class FrameBundle:
     rgb: np.ndarray | None = None
     fork_height: float = 0.0
     truth: dict[str, np.ndarray] = field(default_factory=dict)
+    stamp_s: float | None = None
+    """Capture time (s, on the clock of whoever grabbed it: the runner's) when known; not stored in `.npz`."""
 
     def __post_init__(self) -> None:
         _check_bundle(self.depth, self.K, self.labels, self.rgb, self.fork_height, self.truth, "FrameBundle")
@@ -161,7 +166,7 @@ class FrameBundle:
 
 
 def save_bundle(path: str | Path, bundle: FrameBundle) -> Path:
-    """Write `bundle` to `path` as a compressed `.npz` (numpy appends `.npz` if missing); return the path."""
+    """Write `bundle` to `path` as a compressed `.npz` (`.npz` appended if missing), atomically; return the path."""
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_name(path.name + ".npz")
@@ -175,11 +180,9 @@ def save_bundle(path: str | Path, bundle: FrameBundle) -> Path:
     if bundle.rgb is not None:
         arrays["rgb"] = bundle.rgb
     arrays.update(bundle.truth)
-    try:
-        np.savez_compressed(path, **arrays)
-    except OSError as exc:
-        raise PerceptionError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    return path
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)  # type: ignore[arg-type]  # numpy stubs: a key could be allow_pickle
+    return write_atomic(path, buf.getvalue())  # OutputError (one line) when it cannot be written
 
 
 def load_bundle(path: str | Path) -> FrameBundle:

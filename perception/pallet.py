@@ -54,12 +54,12 @@ from typing import Any, Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from geometry import SE2, SE3
-from perception.calibration_io import Calibration
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass
-from perception.pointcloud import check_intrinsics, class_mask
-from perception.specs import PalletType
+from palletpilot.geometry import SE2, SE3
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.pointcloud import check_intrinsics, class_mask
+from palletpilot.perception.specs import PalletType
 
 PALLET_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL))
 """Label ids of pallet pixels."""
@@ -1164,8 +1164,8 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
         spread=spread,
         n_points=sum(e.n_points for e in estimates),
         n_face_points=sum(e.n_face_points for e in estimates),
-        pocket_widths_m=tuple(np.mean([e.pocket_widths_m for e in estimates], axis=0).tolist()),  # type: ignore[arg-type]
-        pocket_centres_y_m=tuple(np.mean([e.pocket_centres_y_m for e in estimates], axis=0).tolist()),  # type: ignore[arg-type]
+        pocket_widths_m=tuple(np.mean([e.pocket_widths_m for e in estimates], axis=0).tolist()),
+        pocket_centres_y_m=tuple(np.mean([e.pocket_centres_y_m for e in estimates], axis=0).tolist()),
         residual_rms_w=float(np.mean([e.residual_rms_w for e in estimates])),
         T_world_pallet=T_wp,
         runtime_ms=sum(e.runtime_ms for e in estimates),

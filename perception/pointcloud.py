@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle
 
 
 def check_intrinsics(K: np.ndarray, where: str = "K") -> None:

@@ -24,8 +24,9 @@ the reader by extension: `.db3` is read as rosbag2 (SQLite), anything else as a 
 (older SDKs, realsense-viewer). Whatever the installed SDK cannot read raises `PerceptionError`
 naming the file, the format found and the SDK version.
 
-pyrealsense2 is imported lazily: this module imports on machines without it (aarch64, e.g. a Jetson),
-and only opening a source raises a `PerceptionError` saying how to install librealsense.
+pyrealsense2 is imported lazily: this module imports on machines without it (pip has wheels for x86_64
+and, from 2.59.1, for aarch64 with CPython 3.9, 3.10 and 3.12: a Jetson on JetPack 6 gets it from pip;
+not for aarch64 with 3.11), and only opening a source raises a `PerceptionError` saying how to install it.
 """
 
 from __future__ import annotations
@@ -42,8 +43,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, save_bundle
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, save_bundle
 
 WIDTHS = (640, 848)
 """Supported stream widths (pixels) of the live source; the height is always `HEIGHT`."""
@@ -55,8 +56,9 @@ BUNDLE_PATTERN = "frame_{:04d}.npz"
 
 INSTALL_HINT = (
     "pyrealsense2 is not importable: install it with `pip install pyrealsense2` where a wheel exists "
-    "(x86_64 Linux, Windows); elsewhere (aarch64, e.g. a Jetson) build librealsense from source with the "
-    "Python bindings: `cmake .. -DBUILD_PYTHON_BINDINGS=ON -DPYTHON_EXECUTABLE=$(which python3) "
+    "(x86_64 Linux and Windows; aarch64 Linux, e.g. a Jetson on JetPack 6, from 2.59.1 with CPython 3.9, "
+    "3.10 or 3.12); elsewhere build librealsense from source with the Python bindings: "
+    "`cmake .. -DBUILD_PYTHON_BINDINGS=ON -DPYTHON_EXECUTABLE=$(which python3) "
     "-DFORCE_RSUSB_BACKEND=ON && make -j4 && sudo make install`, then put the built pyrealsense2 on "
     "PYTHONPATH (librealsense doc/installation_jetson.md and wrappers/python/readme.md)"
 )
@@ -423,6 +425,7 @@ class RecordingSource(_SourceBase):
             raise PerceptionError(
                 f"{self.path}: recording has no {missing} stream (streams: {', '.join(streams) or 'none'})"
             )
+        assert depth_sensor is not None and colour_sensor is not None  # found with their profiles
         self.fps = min(depth_profile.fps(), colour_profile.fps())
         self._tolerance_ms = 500.0 / self.fps if self.fps > 0 else 50.0
 

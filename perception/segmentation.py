@@ -17,8 +17,8 @@
 - `evaluate_segmenter`: per-class IoU (and runtime) over labelled bundles, for held-out sets, strict
   and with either pallet class counted as right on pallets whose load the image cannot show
   (`load_hidden_mask`); `SegmentationScore` pools the same scores over frames segmented elsewhere;
-  `python -m perception.segmentation eval DATA_DIR [--model M] [--json]` runs it, and
-  `python -m perception.segmentation time DATA_DIR [--frames N]` times `segment` (`benchmark`).
+  `python -m palletpilot.perception.segmentation eval DATA_DIR [--model M] [--json]` runs it, and
+  `python -m palletpilot.perception.segmentation time DATA_DIR [--frames N]` times `segment` (`benchmark`).
 
 `DEFAULT_MODEL` is the model shipped in `perception/models/` (how it was trained: its README).
 """
@@ -37,10 +37,11 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass, load_bundle
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass, load_bundle
 
-DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "segmenter.onnx"
+DEFAULT_MODEL = bundled_path("perception", "models", "segmenter.onnx")
 """The segmentation model shipped with the package."""
 
 PREFERRED_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
@@ -100,7 +101,7 @@ def _parse_metadata(meta: dict[str, str], where: str) -> ModelInfo:
     ids = tuple(sorted(classes))
     labels_output = meta.get("labels_output") or None
     names = tuple(classes[i] for i in ids)
-    return ModelInfo(width, height, mean, std, ids, names, dict(meta), labels_output)  # type: ignore[arg-type]
+    return ModelInfo(width, height, mean, std, ids, names, dict(meta), labels_output)
 
 
 def available_providers(requested: Sequence[str] | None = None) -> list[str]:
@@ -386,8 +387,11 @@ def benchmark(segmenter: SegmentationService, rgbs: Sequence[np.ndarray], warmup
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m perception.segmentation eval|time DATA_DIR [--model M] [--frames N] [--json]` (`bench` = `time`)."""
-    ap = argparse.ArgumentParser(prog="python -m perception.segmentation")
+    """`python -m palletpilot.perception.segmentation eval|time DATA_DIR [--model M] [--frames N] [--json]`.
+
+    (`bench` = `time`.)
+    """
+    ap = argparse.ArgumentParser(prog="python -m palletpilot.perception.segmentation")
     ap.add_argument(
         "what", choices=("eval", "time", "bench"), help="eval: per-class IoU; time (or bench): inference time"
     )

@@ -17,9 +17,9 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from geometry import SE2, SE3
-from geometry.fileio import load_yaml_model
-from perception.errors import PerceptionError
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.perception.errors import PerceptionError
 
 _MM = 5e-4  # tolerance (m) when checking that dimensions add up
 

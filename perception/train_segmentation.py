@@ -3,7 +3,7 @@
 Usage (torch and onnx come with the optional `train` extra; CPU is enough)::
 
     palletpilot segment dataset DATA_DIR --frames 900 --seed 0     # or sim.dataset.generate_dataset
-    python -m perception.train_segmentation DATA_DIR [DATA_DIR ...] --out perception/models/segmenter.onnx \
+    python -m palletpilot.perception.train_segmentation DATA_DIR [DATA_DIR ...] --out perception/models/segmenter.onnx \
         --seed 0 [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--crop 384 288] \
         [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--lr 4e-3] [--threads 2]
 
@@ -47,7 +47,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from perception.frames import SemanticClass, load_bundle
+from palletpilot.perception.frames import SemanticClass, load_bundle
 
 INPUT_WIDTH = 640
 INPUT_HEIGHT = 480
@@ -83,7 +83,7 @@ def load_cached(data_dir: Path, width: int = INPUT_WIDTH, height: int = INPUT_HE
     key_path.unlink(missing_ok=True)
     rgbs = np.lib.format.open_memmap(rgb_path, mode="w+", dtype=np.uint8, shape=(len(files), height, width, 3))
     labs = np.lib.format.open_memmap(lab_path, mode="w+", dtype=np.uint8, shape=(len(files), height, width))
-    kept = []
+    kept: list[str] = []
     for i, f in enumerate(files):
         b = load_bundle(f)
         if b.rgb is None or b.labels is None:
@@ -174,7 +174,7 @@ def augment(rgb: np.ndarray, lab: np.ndarray, rng: np.random.Generator) -> tuple
     """Flip and photometric jitter of one (H, W, 3) uint8 image and its (H, W) labels; returns float32 0..1 RGB."""
     if rng.random() < 0.5:
         rgb, lab = rgb[:, ::-1], lab[:, ::-1]
-    img = rgb.astype(np.float32) / 255.0
+    img: np.ndarray = rgb.astype(np.float32) / 255.0
     if rng.random() < 0.3:
         k = int(rng.choice([3, 5]))
         img = cv2.GaussianBlur(img, (k, k), 0)
@@ -463,7 +463,9 @@ def export_onnx(model, out: Path, facts: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Command line: train, export, optionally evaluate on a held-out folder."""
-    ap = argparse.ArgumentParser(prog="python -m perception.train_segmentation", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m palletpilot.perception.train_segmentation", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("data_dirs", type=Path, nargs="+", help="folders of frame bundles (.npz) with rgb and labels")
     ap.add_argument("--out", type=Path, default=Path("perception/models/segmenter.onnx"))
     ap.add_argument("--seed", type=int, default=0)
@@ -499,7 +501,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(json.dumps(facts), flush=True)
     if args.heldout is not None:
-        from perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
+        from palletpilot.perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
 
         result = evaluate_segmenter(OnnxSegmenter(args.out), sorted(args.heldout.glob("*.npz")))
         print(format_iou(result), flush=True)

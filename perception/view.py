@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry import SE3
-from perception.specs import ForkGeometry, PalletType
+from palletpilot.geometry import SE3
+from palletpilot.perception.specs import ForkGeometry, PalletType
 
 PICKUP_AHEAD_M = (1.2, 3.0)
 """Entry face distances ahead of the fork tips (m) from which the Pickup estimates the pallet (issue 5)."""

@@ -11,13 +11,13 @@ Public API:
 - `RoadmapError`.
 """
 
-from roadmap.curves import Arc, CubicBezier, Curve, CurveSamples, Line
-from roadmap.errors import RoadmapError
-from roadmap.graph import Direction, Edge, Node, NodeType, Overlay, Roadmap
-from roadmap.mapfile import build_curve, check_map, load_map, map_vehicle_file
-from roadmap.path import PathSegment, ReferencePath, reference_path
-from roadmap.planner import Planner, Route, plan_route
-from roadmap.synthesis import connect
+from palletpilot.roadmap.curves import Arc, CubicBezier, Curve, CurveSamples, Line
+from palletpilot.roadmap.errors import RoadmapError
+from palletpilot.roadmap.graph import Direction, Edge, Node, NodeType, Overlay, Roadmap
+from palletpilot.roadmap.mapfile import build_curve, check_map, load_map, map_vehicle_file
+from palletpilot.roadmap.path import PathSegment, ReferencePath, reference_path
+from palletpilot.roadmap.planner import Planner, Route, plan_route
+from palletpilot.roadmap.synthesis import connect
 
 __all__ = [
     "Arc",

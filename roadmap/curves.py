@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from geometry import SE2, wrap_angle
-from roadmap.errors import RoadmapError
+from palletpilot.geometry import SE2, wrap_angle
+from palletpilot.roadmap.errors import RoadmapError
 
 
 @dataclass(frozen=True)
@@ -95,14 +95,14 @@ class Line(Curve):
         return self._length
 
     def sample(self, s: ArrayLike) -> CurveSamples:
-        s = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
+        s_arr = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
         u = (self.p1 - self.p0) / self._length
         return CurveSamples(
-            s,
-            self.p0[0] + s * u[0],
-            self.p0[1] + s * u[1],
-            np.full_like(s, self._heading),
-            np.zeros_like(s),
+            s_arr,
+            self.p0[0] + s_arr * u[0],
+            self.p0[1] + s_arr * u[1],
+            np.full_like(s_arr, self._heading),
+            np.zeros_like(s_arr),
         )
 
     def _end(self, at_end: bool) -> tuple[np.ndarray, float]:
@@ -151,12 +151,12 @@ class Arc(Curve):
         return self._length
 
     def sample(self, s: ArrayLike) -> CurveSamples:
-        s = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
+        s_arr = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
         k = self.curvature
-        h = self.heading0 + k * s
+        h = self.heading0 + k * s_arr
         x = self.p0[0] + (np.sin(h) - math.sin(self.heading0)) / k
         y = self.p0[1] - (np.cos(h) - math.cos(self.heading0)) / k
-        return CurveSamples(s, x, y, np.asarray(wrap_angle(h)), np.full_like(s, k))
+        return CurveSamples(s_arr, x, y, np.asarray(wrap_angle(h)), np.full_like(s_arr, k))
 
     def _end(self, at_end: bool) -> tuple[np.ndarray, float]:
         if not at_end:
@@ -224,14 +224,14 @@ class CubicBezier(Curve):
         return self._length
 
     def sample(self, s: ArrayLike) -> CurveSamples:
-        s = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
-        t = np.interp(s, self._s, self._t)
+        s_arr = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
+        t = np.interp(s_arr, self._s, self._t)
         p = self._point(t)
         d1 = self._derivative(t, 1)
         d2 = self._derivative(t, 2)
         speed = np.hypot(d1[:, 0], d1[:, 1])
         curvature = (d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) / np.maximum(speed, 1e-12) ** 3
-        return CurveSamples(s, p[:, 0], p[:, 1], np.arctan2(d1[:, 1], d1[:, 0]), curvature)
+        return CurveSamples(s_arr, p[:, 0], p[:, 1], np.arctan2(d1[:, 1], d1[:, 0]), curvature)
 
     def reversed(self) -> CubicBezier:
         return CubicBezier(*self.control[::-1])

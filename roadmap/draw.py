@@ -12,8 +12,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 
-from roadmap.graph import Direction, NodeType, Roadmap
-from roadmap.planner import Route
+from palletpilot.roadmap.graph import Direction, NodeType, Roadmap
+from palletpilot.roadmap.planner import Route
 
 NODE_STYLE = {
     NodeType.WAYPOINT: ("o", "#7f7f7f"),

@@ -1,6 +1,6 @@
 """Roadmap errors."""
 
-from geometry import PalletpilotError
+from palletpilot.geometry import PalletpilotError
 
 
 class RoadmapError(PalletpilotError):

@@ -19,9 +19,9 @@ from enum import Enum
 
 import networkx as nx
 
-from geometry import SE2, angle_diff
-from roadmap.curves import Curve, Line
-from roadmap.errors import RoadmapError
+from palletpilot.geometry import SE2, angle_diff
+from palletpilot.roadmap.curves import Curve, Line
+from palletpilot.roadmap.errors import RoadmapError
 
 TANGENT_TOLERANCE_RAD = math.radians(1.0)
 """How far a curve's end tangent may differ from its node's heading axis."""

@@ -29,11 +29,11 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from geometry import SE2
-from geometry.fileio import read_yaml, validate_model
-from roadmap.curves import Arc, CubicBezier, Curve, Line
-from roadmap.errors import RoadmapError
-from roadmap.graph import Direction, Edge, Node, NodeType, Roadmap
+from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import read_yaml, validate_model
+from palletpilot.roadmap.curves import Arc, CubicBezier, Curve, Line
+from palletpilot.roadmap.errors import RoadmapError
+from palletpilot.roadmap.graph import Direction, Edge, Node, NodeType, Roadmap
 
 
 class _Strict(BaseModel):

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from geometry import SE2, wrap_angle
-from roadmap.errors import RoadmapError
-from roadmap.graph import Edge
-from roadmap.planner import Route
+from palletpilot.geometry import SE2, wrap_angle
+from palletpilot.roadmap.errors import RoadmapError
+from palletpilot.roadmap.graph import Edge
+from palletpilot.roadmap.planner import Route
 
 
 @dataclass(frozen=True)
@@ -93,9 +93,22 @@ def reference_path(route: Route, step_m: float = 0.05) -> ReferencePath:
 
     def close() -> None:
         nonlocal s0, parts, names
-        arrays = [np.concatenate(a) for a in zip(*parts, strict=True)]
-        segments.append(PathSegment(*arrays, direction=current.direction.sign, edges=tuple(names)))
-        s0 = float(arrays[0][-1])
+        s_all, x_all, y_all, heading_all, curvature_all, speed_all = (
+            np.concatenate(a) for a in zip(*parts, strict=True)
+        )
+        segments.append(
+            PathSegment(
+                s_all,
+                x_all,
+                y_all,
+                heading_all,
+                curvature_all,
+                speed_all,
+                direction=current.direction.sign,
+                edges=tuple(names),
+            )
+        )
+        s0 = float(s_all[-1])
         parts, names = [], []
 
     current = route.edges[0]

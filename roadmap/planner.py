@@ -21,9 +21,9 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from geometry import angle_diff
-from roadmap.errors import RoadmapError
-from roadmap.graph import HEADING_REQUIRED, TANGENT_TOLERANCE_RAD, Edge, Roadmap
+from palletpilot.geometry import angle_diff
+from palletpilot.roadmap.errors import RoadmapError
+from palletpilot.roadmap.graph import HEADING_REQUIRED, TANGENT_TOLERANCE_RAD, Edge, Roadmap
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,9 @@ import math
 import numpy as np
 from scipy.optimize import minimize
 
-from geometry import SE2, angle_diff
-from roadmap.curves import CubicBezier, Curve, Line
-from roadmap.errors import RoadmapError
+from palletpilot.geometry import SE2, angle_diff
+from palletpilot.roadmap.curves import CubicBezier, Curve, Line
+from palletpilot.roadmap.errors import RoadmapError
 
 _COLLINEAR_TOL_M = 1e-4
 _COLLINEAR_TOL_RAD = 1e-4

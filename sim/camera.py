@@ -40,9 +40,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage, special
 from scipy.spatial.transform import Rotation
 
-from geometry import SE3
-from perception.frames import FrameBundle, SemanticClass
-from sim.world import LabeledMesh, Texture
+from palletpilot.geometry import SE3
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.sim.world import LabeledMesh, Texture, o3d_tensor
 
 D435_COLOR_VFOV_DEG = 42.8
 """Vertical field of view of the D435 colour imager (69.4 x 42.8 deg at 16:9; fx ~ 612 px at 480 rows)."""
@@ -316,7 +316,7 @@ class RaycastRenderer:
         m = mesh.n_triangles
         if m:
             scene.add_triangles(
-                o3d.core.Tensor(mesh.vertices.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32))
+                o3d_tensor(mesh.vertices.astype(np.float32)), o3d_tensor(mesh.triangles.astype(np.uint32))
             )
         corners = mesh.vertices[mesh.triangles]  # (M, 3 corners, 3)
         normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -397,6 +397,7 @@ class RaycastRenderer:
             raise ValueError("RaycastRenderer.render: noise or lighting variation needs a numpy Generator `rng`")
         lighting = lighting or Lighting()
         if noise.lighting_variation:
+            assert rng is not None  # checked above (needs_rng)
             lighting = lighting.varied(rng)
 
         sc = self._scene_for(dynamic)
@@ -419,6 +420,7 @@ class RaycastRenderer:
         truth = dict(truth or {})
         if noise.label_noise:
             truth["labels_true"] = labels  # the exact labels, to score a segmenter against
+            assert rng is not None  # checked above (needs_rng)
             labels = perturb_labels(labels, noise.label_noise_px, rng)
         return FrameBundle(
             depth=depth.reshape(h, w),
@@ -481,6 +483,7 @@ class RaycastRenderer:
             col[k] *= gain
         rgb = cv2.merge([cv2.convertScaleAbs(col[k]) for k in range(3)]).reshape(-1, 3)  # saturating uint8
         if noise.rgb_sigma > 0:
+            assert rng is not None  # `render` requires it with RGB noise
             # One random byte per sample picks a Gaussian quantile: zero-mean noise of std rgb_sigma.
             up, down = _rgb_noise_luts(noise.rgb_sigma)
             draw = rng.integers(0, 256, rgb.shape, dtype=np.uint8)
@@ -501,6 +504,7 @@ class RaycastRenderer:
         depth = np.zeros(z.shape, np.float32)
         np.copyto(depth, z, where=hit)
         if noise.depth_noise:
+            assert rng is not None  # `render` requires it with depth noise
             h, w = camera.height, camera.width
             scratch, noisy, z_max, z_min = rc.f
             # Flying pixels: at a depth edge in the 3x3 neighbourhood, mix foreground and background.

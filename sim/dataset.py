@@ -36,16 +36,17 @@ from pathlib import Path
 
 import numpy as np
 
-from geometry import SE2
-from perception.frames import FrameBundle, save_bundle
-from perception.specs import ForkGeometry, PalletType, load_forks
-from perception.view import pickup_view
-from roadmap import NodeType, load_map
-from sim.camera import d435_color_intrinsics
-from sim.scenario import CameraMount, Scenario
-from sim.simulator import Simulator
+from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.frames import FrameBundle, save_bundle
+from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks
+from palletpilot.perception.view import pickup_view
+from palletpilot.roadmap import NodeType, load_map
+from palletpilot.sim.camera import d435_color_intrinsics
+from palletpilot.sim.scenario import CameraMount, Scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS_DIR = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS_DIR = bundled_path("missions")
 """Folder of the example map, fork and vehicle files."""
 MAP_FILE = "warehouse.yaml"
 

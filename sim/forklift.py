@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.vehicle import VehicleParams
-from geometry import SE2
+from palletpilot.control.vehicle import VehicleParams
+from palletpilot.geometry import SE2
 
 
 @dataclass
@@ -49,11 +49,14 @@ class SimForklift:
         self.steering_cmd = 0.0
         self.fork_height_cmd = fork_height
         self.odometer = 0.0  # m travelled, for progress checks
+        self.emergency = False  # the safety stop is latched: brake at emergency_decel, no drive commands
 
     # -- commands -----------------------------------------------------------------------
     def command(self, speed: float, steering: float) -> None:
         """Set the drive command: speed (m/s, negative in reverse) and steering angle (rad), clipped to limits."""
         p = self.params
+        if self.emergency:
+            return
         self.speed_cmd = float(np.clip(speed, -p.max_speed_reverse, p.max_speed_forward))
         self.steering_cmd = float(np.clip(steering, -p.max_steering, p.max_steering))
 
@@ -66,15 +69,22 @@ class SimForklift:
         """Command zero speed (the actuators still brake at their limits); steering is held."""
         self.speed_cmd = 0.0
 
+    def emergency_stop(self) -> None:
+        """Latch the safety stop: zero speed at `emergency_decel`, drive commands ignored from now on."""
+        self.emergency = True
+        self.speed_cmd = 0.0
+
     # -- integration --------------------------------------------------------------------
     def step(self, dt: float) -> None:
         """Advance the state by `dt` seconds."""
         p, s = self.params, self.state
         lag = max(p.actuator_lag_s, dt)
-        # Speed: first-order lag towards the command, bounded by acceleration / deceleration.
-        dv = (self.speed_cmd - s.v) * min(1.0, dt / lag)
+        # Speed: first-order lag towards the command, bounded by acceleration / deceleration. The safety
+        # stop acts on the brakes directly: no drive-controller lag, the emergency deceleration.
+        dv = (self.speed_cmd - s.v) * (1.0 if self.emergency else min(1.0, dt / lag))
         braking = abs(self.speed_cmd) < abs(s.v) or self.speed_cmd * s.v < 0
-        dv_max = (p.max_decel if braking else p.max_accel) * dt
+        decel = p.emergency_decel if self.emergency else p.max_decel
+        dv_max = (decel if braking else p.max_accel) * dt
         v_new = s.v + float(np.clip(dv, -dv_max, dv_max))
         # Steering: first-order lag towards the command, bounded by the steering rate and angle.
         rate = math.radians(p.max_steering_rate_deg_s)

@@ -46,9 +46,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from geometry import SE3, PalletpilotError
-from geometry.fileio import load_yaml_model
-from sim.camera import CameraNoise, camera_mount_pose
+from palletpilot.geometry import SE3, PalletpilotError
+from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.sim.camera import CameraNoise, camera_mount_pose
+from palletpilot.sim.faults import FaultSpec
 
 
 class SimError(PalletpilotError):
@@ -141,6 +142,7 @@ class Scenario(_Strict):
     noise: NoiseSpec = NoiseSpec()
     pallets: list[PalletPlacement] = []
     clutter: list[ClutterSpec] = []
+    faults: list[FaultSpec] = []  # injected faults (sim.faults); none by default
     folder: Path = Field(Path("."), exclude=True)
 
     def path(self, name: str) -> Path:

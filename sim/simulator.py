@@ -6,7 +6,8 @@ offers (the vehicle and camera ports of ARCHITECTURE.md) plus the truth that onl
 - `localization()` -> `T_world_forklift` with the scenario's noise; `drive(speed, steering)`; `stop()`;
   `set_fork_height(h)` and `fork_height`; `proximity_ranges()` -> (left, right) beam ranges (m);
 - `grab()` -> a `FrameBundle` rendered from the camera on the fork carriage (truth in `*_true` keys);
-- `step(dt)` advances simulated time: driving, lifting, pallets riding on the forks, collisions.
+- `step(dt)` advances simulated time: driving, lifting, pallets riding on the forks, collisions;
+- `snapshot()` -> plain JSON of the exact state, `restore(doc)` returns to it (`sim.snapshot`).
 
 Pickup physics: the forks and the carriage's load backrest are boxes; every step near a pallet they
 are tested against the pallet's boards and blocks (separating axes). A fork that meets a part while
@@ -17,21 +18,33 @@ rides on them; lowered onto the floor or a rack beam it stays there.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 
-from control.vehicle import VehicleParams, load_vehicle
-from geometry import SE2, SE3
-from perception.frames import FrameBundle
-from perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
-from roadmap import NodeType, Roadmap, load_map, map_vehicle_file
-from sim.camera import CameraModel, RaycastRenderer
-from sim.forklift import LocalizationNoise, SimForklift
-from sim.scenario import Scenario, SimError
-from sim.world import LabeledMesh, Rack, floor_mesh, forks_mesh, object_box_mesh, pallet_mesh, person_mesh, wall_mesh
+from palletpilot.control.vehicle import VehicleParams, load_vehicle
+from palletpilot.geometry import SE2, SE3
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
+from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
+from palletpilot.sim.camera import CameraModel, RaycastRenderer
+from palletpilot.sim.forklift import LocalizationNoise, SimForklift
+from palletpilot.sim.scenario import Scenario, SimError
+from palletpilot.sim.snapshot import restore_snapshot, take_snapshot
+from palletpilot.sim.world import (
+    LabeledMesh,
+    Rack,
+    floor_mesh,
+    forks_mesh,
+    o3d_tensor,
+    object_box_mesh,
+    pallet_mesh,
+    person_mesh,
+    wall_mesh,
+)
 
 CONTROL_DT = 0.05
 """Control period (s): the executor ticks at 20 Hz."""
@@ -179,8 +192,9 @@ class Simulator:
         return self.localization_noise.measure(self.true_pose, self._loc_rng)
 
     def drive(self, speed: float, steering: float) -> None:
-        """Drive command: speed (m/s, negative in reverse) and steering angle (rad). Ignored after a collision."""
-        if self.collisions:
+        """Drive command: speed (m/s, negative in reverse) and steering angle (rad). Ignored after a collision
+        or a safety stop."""
+        if self.collisions or self.forklift.emergency:
             self.forklift.stop()
             return
         self.forklift.command(speed, steering)
@@ -188,6 +202,14 @@ class Simulator:
     def stop(self) -> None:
         """Brake to a standstill."""
         self.forklift.stop()
+
+    def emergency_stop(self) -> None:
+        """The truck's safety stop: brake at `emergency_decel` whatever the drive commands (latched)."""
+        self.forklift.emergency_stop()
+
+    def localization_stamp(self) -> float:
+        """When the last localization fix was taken (s, simulated): every call measures anew."""
+        return self.time
 
     @property
     def speed(self) -> float:
@@ -235,7 +257,7 @@ class Simulator:
         origins = T.apply(np.array([[self.forks.tip_x, y, z] for y in self.forks.centres_y]))
         direction = T.apply_vectors([1.0, 0.0, 0.0])
         rays = np.hstack([origins, np.tile(direction, (2, 1))]).astype(np.float32)
-        t = self._beam_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t = self._beam_scene.cast_rays(o3d_tensor(rays))["t_hit"].numpy()
         ranges = [float(r) if r <= BEAM_MAX_RANGE_M else math.inf for r in t]
         return ranges[0], ranges[1]
 
@@ -254,7 +276,7 @@ class Simulator:
         target = self.pallet_ahead()
         if target is not None:
             truth["T_forklift_pallet_true"] = (self.T_world_forklift3.inv() @ target.T_world_pallet).matrix
-        return self._renderer.render(
+        frame = self._renderer.render(
             self.T_world_camera_true(),
             self.camera,
             self.scenario.camera.noise,
@@ -263,6 +285,7 @@ class Simulator:
             fork_height=self.fork_height,
             truth=truth,
         )
+        return dataclasses.replace(frame, stamp_s=self.time)
 
     def pallet_ahead(self, max_range_m: float = 6.0) -> SimPallet | None:
         """The nearest resting pallet in front of the forks (within 45 deg of the fork axis), if any."""
@@ -276,6 +299,26 @@ class Simulator:
             if local[0] > 0 and abs(math.atan2(local[1], local[0])) < math.radians(45) and d < best_d:
                 best, best_d = p, d
         return best
+
+    # -- snapshots ------------------------------------------------------------------------
+    def snapshot(self) -> dict:
+        """The simulator's exact state as plain JSON, for crash-safe resume (layout: `sim.snapshot`).
+
+        Holds what evolves while it runs (simulated time; the forklift's pose, speed, steering, fork
+        height, commands and odometer; every pallet's pose, load and carried state; the collisions; the
+        states of all random generators) plus what is fixed at construction (seed, perturbed camera mount).
+        """
+        return take_snapshot(self)
+
+    def restore(self, doc: dict) -> None:
+        """Return to the state of a `snapshot()`, bit for bit; caches of the resting pallets are dropped.
+
+        Meant for a simulator built from the same scenario (and seed) as the snapshot's. Only the evolving
+        parts differ from a fresh build; the seed and camera mount are restored too. Raises `SimError`
+        (one line) for another snapshot format version, pallets that do not match the scenario's (count
+        or nodes) or a malformed snapshot, and then leaves the simulator unchanged.
+        """
+        restore_snapshot(self, doc)
 
     # -- time -----------------------------------------------------------------------------
     def step(self, dt: float = CONTROL_DT) -> None:

@@ -25,9 +25,9 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
 
-from geometry import SE2, SE3
-from perception.frames import SemanticClass
-from perception.specs import ForkGeometry, PalletType
+from palletpilot.geometry import SE2, SE3
+from palletpilot.perception.frames import SemanticClass
+from palletpilot.perception.specs import ForkGeometry, PalletType
 
 
 class Texture(IntEnum):
@@ -53,6 +53,14 @@ HI_VIS_YELLOW = (0.85, 0.80, 0.10)
 DENIM = (0.15, 0.20, 0.35)
 SKIN = (0.76, 0.57, 0.45)
 BIN_GREEN = (0.15, 0.45, 0.20)
+
+
+def o3d_tensor(array: np.ndarray) -> o3d.core.Tensor:
+    """`o3d.core.Tensor(array)`: a CPU tensor copy of `array`, same dtype.
+
+    open3d's stubs make `dtype` and `device` required; at runtime they default to the array's dtype and the CPU.
+    """
+    return o3d.core.Tensor(array)  # type: ignore[call-overload]
 
 
 def _as_pose(T: SE3 | SE2) -> SE3:
@@ -177,10 +185,10 @@ class LabeledMesh:
     def to_open3d(self) -> o3d.t.geometry.TriangleMesh:
         """An Open3D tensor mesh with triangle attributes `classes` (uint8) and `colors` (albedo), for viewing."""
         mesh = o3d.t.geometry.TriangleMesh()
-        mesh.vertex.positions = o3d.core.Tensor(self.vertices.astype(np.float32))
-        mesh.triangle.indices = o3d.core.Tensor(self.triangles)
-        mesh.triangle["classes"] = o3d.core.Tensor(self.classes)
-        mesh.triangle.colors = o3d.core.Tensor(self.albedo)
+        mesh.vertex.positions = o3d_tensor(self.vertices.astype(np.float32))
+        mesh.triangle.indices = o3d_tensor(self.triangles)
+        mesh.triangle["classes"] = o3d_tensor(self.classes)
+        mesh.triangle.colors = o3d_tensor(self.albedo)
         return mesh
 
 

@@ -1,18 +1,18 @@
 """From a RealSense recording to a calibration: extract bundles (no labels), segment, calibrate."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 
-from executor.cli import main
-from perception.calibration_io import mount_angles
-from perception.frames import load_bundle
-from perception.realsense import write_software_recording
-from sim.scenario import Scenario
-from sim.simulator import Simulator
+from palletpilot.cli import main
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration_io import mount_angles
+from palletpilot.perception.frames import load_bundle
+from palletpilot.perception.realsense import write_software_recording
+from palletpilot.sim.scenario import Scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 def test_calibrate_runs_on_bundles_extracted_from_a_recording(tmp_path, capsys):

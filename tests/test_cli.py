@@ -1,13 +1,13 @@
 """The `palletpilot` CLI: map, plan and bench commands; exit codes and one-line errors."""
 
 import json
-from pathlib import Path
 
 import pytest
 
-from executor.cli import main
+from palletpilot.cli import main
+from palletpilot.geometry.fileio import bundled_path
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 MAP = str(MISSIONS / "warehouse.yaml")
 
 

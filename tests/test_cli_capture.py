@@ -10,11 +10,11 @@ import pytest
 
 pytest.importorskip("pyrealsense2")
 
-from executor.cli_capture import add_parsers
-from geometry import PalletpilotError
-from perception import realsense
-from perception.frames import load_bundle
-from perception.realsense import write_software_recording
+from palletpilot.executor.cli_capture import add_parsers
+from palletpilot.geometry import PalletpilotError
+from palletpilot.perception import realsense
+from palletpilot.perception.frames import load_bundle
+from palletpilot.perception.realsense import write_software_recording
 
 K = np.array([[400.0, 0.0, 80.0], [0.0, 400.0, 60.0], [0.0, 0.0, 1.0]])
 
@@ -73,7 +73,7 @@ def test_capture_errors_are_one_line(recording, tmp_path, capsys, monkeypatch):
 
 
 def test_main_cli_registers_capture_once_wired():
-    from executor import cli
+    from palletpilot.executor import cli
 
     parser = cli.build_parser()
     try:

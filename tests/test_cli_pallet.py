@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from bench.pallet import FrameSpec, render
-from executor.cli_pallet import add_parsers
-from geometry import SE3
-from perception.calibration_io import Calibration, save_calibration
-from perception.errors import PerceptionError
-from perception.frames import SemanticClass, save_bundle
-from perception.pallet import PalletNotFound
+from palletpilot.bench.pallet import FrameSpec, render
+from palletpilot.executor.cli_pallet import add_parsers
+from palletpilot.geometry import SE3
+from palletpilot.perception.calibration_io import Calibration, save_calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import SemanticClass, save_bundle
+from palletpilot.perception.pallet import PalletNotFound
 
 
 def run(argv: list[str]) -> int:

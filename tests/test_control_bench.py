@@ -2,8 +2,8 @@
 
 import argparse
 
-from bench import BENCHMARKS
-from bench.mpc import add_arguments, run
+from palletpilot.bench import BENCHMARKS
+from palletpilot.bench.mpc import add_arguments, run
 
 KEYS = {
     "solve_ms_median",
@@ -17,7 +17,7 @@ KEYS = {
 
 
 def test_bench_mpc_reports_both_controllers_on_a_pallet_approach():
-    assert BENCHMARKS["mpc"] == "bench.mpc"
+    assert BENCHMARKS["mpc"] == "palletpilot.bench.mpc"
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     result = run(parser.parse_args(["--routes", "a3->floor_a3", "--seed", "3"]))

@@ -1,13 +1,12 @@
 """MPC and pure-pursuit path followers driving the simulated forklift (20 Hz, actuator lag, noise)."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bench.mpc import drive
-from control import (
+from palletpilot.bench.mpc import drive
+from palletpilot.control import (
     ControlError,
     FollowerConfig,
     FollowerStatus,
@@ -17,11 +16,12 @@ from control import (
     PurePursuitFollower,
     load_vehicle,
 )
-from geometry import SE2
-from roadmap import Arc, Direction, Edge, Line, Route, reference_path
-from sim.forklift import LocalizationNoise
+from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.roadmap import Arc, Direction, Edge, Line, Route, reference_path
+from palletpilot.sim.forklift import LocalizationNoise
 
-VEHICLE = load_vehicle(Path(__file__).resolve().parents[1] / "missions" / "forklift.yaml")
+VEHICLE = load_vehicle(bundled_path("missions") / "forklift.yaml")
 NOISE = LocalizationNoise(xy_sigma=0.005, yaw_sigma=math.radians(0.2))
 
 
@@ -120,7 +120,7 @@ def test_mpc_reverses_out_stops_and_drives_on(mpc):
 def test_mpc_speed_and_steering_commands_respect_the_limits(mpc):
     path = arc_path()
     mpc.start(path)
-    from sim.forklift import SimForklift
+    from palletpilot.sim.forklift import SimForklift
 
     sim = SimForklift(VEHICLE, path.segments[0].start_pose)
     prev, t = 0.0, 0.0
@@ -150,7 +150,7 @@ def test_pure_pursuit_baseline_reaches_the_pallet_node():
 
 def _drive_until_error(follower, path, ticks: int = 200):
     """Drive moving at 0.5 m/s; collect the commands until `ControlError`."""
-    from sim.forklift import SimForklift
+    from palletpilot.sim.forklift import SimForklift
 
     sim = SimForklift(VEHICLE, path.segments[0].start_pose)
     sim.state.v = 0.5

@@ -6,12 +6,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from executor.app import run_simulated
-from executor.cli import main
-from executor.mission import MissionError
-from sim.scenario import Scenario
+from palletpilot.cli import main
+from palletpilot.executor.app import run_simulated
+from palletpilot.executor.mission import MissionError
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.sim.scenario import Scenario
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 def mission_file(tmp_path: Path, tasks: list[dict], name: str = "test") -> Path:
@@ -49,7 +50,7 @@ def test_aligned_pallet_is_picked_without_replanning(tmp_path, monkeypatch):
     # Every controller solve seems to take 0.5 s of wall clock (a badly loaded machine): simulated time
     # waits for it, so the seeded run must not change (a real-time deadline would fail it).
     ticks = iter(range(10**9))
-    monkeypatch.setattr("control.mpc.timed", lambda: 0.5 * next(ticks))
+    monkeypatch.setattr("palletpilot.control.mpc.timed", lambda: 0.5 * next(ticks))
     r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], scenario("b1", [{"node": "floor_b2"}]))
     task = r.summary["tasks"][0]
     assert r.success and task["result"] == "succeeded" and task["attempts"] == 1
@@ -160,8 +161,8 @@ def test_invalid_missions_are_rejected(tmp_path, capsys, task, message):
 
 
 def test_cancel_stops_the_vehicle(tmp_path):
-    from executor.app import default_scenario
-    from executor.mission import load_mission
+    from palletpilot.executor.app import default_scenario
+    from palletpilot.executor.mission import load_mission
 
     path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
     sc = default_scenario(load_mission(path))
@@ -184,8 +185,8 @@ def test_cancel_stops_the_vehicle(tmp_path):
 
 
 def test_pause_holds_the_vehicle_still(tmp_path):
-    from executor.app import default_scenario
-    from executor.mission import load_mission
+    from palletpilot.executor.app import default_scenario
+    from palletpilot.executor.mission import load_mission
 
     path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
     sc = default_scenario(load_mission(path))

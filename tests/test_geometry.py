@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from geometry import SE2, SE3, GeometryError, angle_diff, wrap_angle
+from palletpilot.geometry import SE2, SE3, GeometryError, angle_diff, wrap_angle
 
 coord = st.floats(-50.0, 50.0, allow_nan=False)
 angle = st.floats(-10.0, 10.0, allow_nan=False)

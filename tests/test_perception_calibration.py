@@ -3,21 +3,21 @@
 import dataclasses
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from executor.cli import main
-from perception.calibration import CalibrationError, Calibrator, calibrate
-from perception.calibration_io import load_calibration, mount_angles, save_calibration
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass, save_bundle
-from perception.specs import load_forks
-from sim.scenario import Scenario
-from sim.simulator import Simulator
+from palletpilot.cli import main
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration import CalibrationError, Calibrator, calibrate
+from palletpilot.perception.calibration_io import load_calibration, mount_angles, save_calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass, save_bundle
+from palletpilot.perception.specs import load_forks
+from palletpilot.sim.scenario import Scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 FORKS = load_forks(MISSIONS / "forks.yaml")
 QUIET = {"depth_noise": False, "label_noise": False, "rgb_sigma": 0.0, "lighting_variation": False, "invalid_rate": 0.0}
 

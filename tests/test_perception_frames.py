@@ -7,11 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass, load_bundle, save_bundle
-from perception.specs import ForkGeometry, PalletType, load_forks, load_pallet_type
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass, load_bundle, save_bundle
+from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, load_pallet_type
 
-FORKS_FILE = Path(__file__).resolve().parents[1] / "missions" / "forks.yaml"
+FORKS_FILE = bundled_path("missions") / "forks.yaml"
 
 
 def _bundle(h: int = 6, w: int = 8) -> FrameBundle:

@@ -2,23 +2,23 @@
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from bench.pallet import FrameSpec, render
-from geometry import SE2, SE3
-from perception import pallet as pallet_module
-from perception.alignment import AlignmentTolerances, check_alignment
-from perception.calibration_io import Calibration
-from perception.frames import FrameBundle, SemanticClass
-from perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
-from perception.specs import PalletType, load_forks, node_pose_for_pallet, pallet_pose_at_node
-from sim.camera import CameraModel, RaycastRenderer, camera_mount_pose
-from sim.world import LabeledMesh, floor_mesh, object_box_mesh
+from palletpilot.bench.pallet import FrameSpec, render
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception import pallet as pallet_module
+from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.pallet import PalletNotFound, estimate_pallet, fuse_estimates
+from palletpilot.perception.specs import PalletType, load_forks, node_pose_for_pallet, pallet_pose_at_node
+from palletpilot.sim.camera import CameraModel, RaycastRenderer, camera_mount_pose
+from palletpilot.sim.world import LabeledMesh, floor_mesh, object_box_mesh
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 def true_calibration(frame: FrameBundle) -> Calibration:

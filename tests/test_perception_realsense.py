@@ -16,10 +16,10 @@ import pytest
 
 pytest.importorskip("pyrealsense2")
 
-from perception import realsense
-from perception.errors import PerceptionError
-from perception.frames import load_bundle
-from perception.realsense import (
+from palletpilot.perception import realsense
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import load_bundle
+from palletpilot.perception.realsense import (
     CameraSource,
     EndOfRecordingError,
     RealSenseSource,

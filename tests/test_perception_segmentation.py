@@ -1,13 +1,12 @@
 """Segmentation service: the shipped ONNX model on a fresh simulator frame, metadata, errors, ensure_labels."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from perception.errors import PerceptionError
-from perception.frames import FrameBundle, SemanticClass
-from perception.segmentation import (
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.segmentation import (
     DEFAULT_MODEL,
     GroundTruthSegmenter,
     OnnxSegmenter,
@@ -19,10 +18,10 @@ from perception.segmentation import (
     iou_from_confusion,
     load_hidden_mask,
 )
-from sim.scenario import load_scenario
-from sim.simulator import Simulator
+from palletpilot.sim.scenario import load_scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 @pytest.fixture(scope="module")
@@ -186,7 +185,7 @@ def test_ground_truth_segmenter_checks_the_size(sim_frame):
 
 
 def test_training_crops_are_drawn_around_pallets():
-    from perception.train_segmentation import sample_crop
+    from palletpilot.perception.train_segmentation import sample_crop
 
     labels = np.zeros((480, 640), np.uint8)
     labels[40:70, 500:600] = SemanticClass.PALLET_FULL

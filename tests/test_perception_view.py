@@ -1,15 +1,15 @@
 """The Pickup view check of a camera mount: entry face and load in the image 1.2-3.0 m ahead of the tips."""
 
 import math
-from pathlib import Path
 
 import pytest
 
-from perception.specs import PalletType, load_forks
-from perception.view import pickup_view
-from sim.camera import camera_mount_pose, d435_color_intrinsics
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.specs import PalletType, load_forks
+from palletpilot.perception.view import pickup_view
+from palletpilot.sim.camera import camera_mount_pose, d435_color_intrinsics
 
-FORKS = load_forks(Path(__file__).resolve().parents[1] / "missions" / "forks.yaml")
+FORKS = load_forks(bundled_path("missions") / "forks.yaml")
 
 
 def view(tilt_deg: float, z: float = 0.45):

@@ -5,10 +5,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from control import load_vehicle
-from roadmap import NodeType, RoadmapError, check_map, load_map
+from palletpilot.control import load_vehicle
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.roadmap import NodeType, RoadmapError, check_map, load_map
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 EXAMPLE = MISSIONS / "warehouse.yaml"
 
 # A minimal sound map: a corridor node, a pre-pallet node and a pallet node 2.5 m ahead.

@@ -2,16 +2,16 @@
 
 import itertools
 import math
-from pathlib import Path
 
 import networkx as nx
 import numpy as np
 import pytest
 
-from bench.roadmap import warehouse_grid
-from control import load_vehicle
-from geometry import SE2, angle_diff
-from roadmap import (
+from palletpilot.bench.roadmap import warehouse_grid
+from palletpilot.control import load_vehicle
+from palletpilot.geometry import SE2, angle_diff
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.roadmap import (
     Arc,
     CubicBezier,
     Direction,
@@ -26,7 +26,7 @@ from roadmap import (
     reference_path,
 )
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 @pytest.fixture(scope="module")

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
-from geometry import SE2, SE3
-from perception.frames import FrameBundle, SemanticClass
-from perception.specs import PalletType, load_forks
-from sim.camera import (
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.specs import PalletType, load_forks
+from palletpilot.sim.camera import (
     CameraModel,
     CameraNoise,
     RaycastRenderer,
@@ -21,9 +20,9 @@ from sim.camera import (
     perturb_labels,
     render,
 )
-from sim.world import example_world, floor_mesh, forks_mesh, pallet_mesh, wall_mesh
+from palletpilot.sim.world import example_world, floor_mesh, forks_mesh, pallet_mesh, wall_mesh
 
-FORKS_FILE = Path(__file__).resolve().parents[1] / "missions" / "forks.yaml"
+FORKS_FILE = bundled_path("missions") / "forks.yaml"
 CAMERA = CameraModel.d435(640, 480)
 # Mount: on the carriage, 45 cm above the fork bottoms, 5 cm ahead of the heels, pitched 30 deg down.
 T_FORKLIFT_CAMERA0 = camera_mount_pose((0.05, 0.0, 0.45), np.deg2rad(30.0))

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from perception.frames import SemanticClass, load_bundle
-from sim.dataset import generate_dataset, pallet_nodes, render_frame
+from palletpilot.perception.frames import SemanticClass, load_bundle
+from palletpilot.sim.dataset import generate_dataset, pallet_nodes, render_frame
 
 
 def test_generate_two_frames(tmp_path):
@@ -27,11 +27,11 @@ def test_pallet_nodes_of_the_example_map():
 
 
 def test_pickup_mounts_are_the_ones_calibrate_accepts():
-    from perception.calibration_io import mount_angles
-    from perception.specs import PalletType, load_forks
-    from perception.view import pickup_view
-    from sim.camera import d435_color_intrinsics
-    from sim.dataset import MISSIONS_DIR, random_scenario
+    from palletpilot.perception.calibration_io import mount_angles
+    from palletpilot.perception.specs import PalletType, load_forks
+    from palletpilot.perception.view import pickup_view
+    from palletpilot.sim.camera import d435_color_intrinsics
+    from palletpilot.sim.dataset import MISSIONS_DIR, random_scenario
 
     forks = load_forks(MISSIONS_DIR / "forks.yaml")
     tilts = {"all": [], "pickup": []}
@@ -50,7 +50,7 @@ def test_pickup_mounts_are_the_ones_calibrate_accepts():
 def test_unknown_mount_set_is_refused():
     import pytest
 
-    from sim.dataset import random_scenario
+    from palletpilot.sim.dataset import random_scenario
 
     with pytest.raises(ValueError, match="mounts must be one of all, pickup"):
         random_scenario(np.random.default_rng(0), mounts="steep")

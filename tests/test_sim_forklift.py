@@ -1,16 +1,16 @@
 """The simulated forklift's kinematics, actuator limits and mast."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from control import load_vehicle
-from geometry import SE2
-from sim.forklift import LocalizationNoise, SimForklift
+from palletpilot.control import load_vehicle
+from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.sim.forklift import LocalizationNoise, SimForklift
 
-VEHICLE = load_vehicle(Path(__file__).resolve().parents[1] / "missions" / "forklift.yaml")
+VEHICLE = load_vehicle(bundled_path("missions") / "forklift.yaml")
 DT = 0.05
 
 

@@ -1,19 +1,19 @@
 """The simulated warehouse: scenarios, proximity beams, pickup physics, collisions, frames."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from executor.cli import main
-from geometry import SE3
-from perception.frames import load_bundle
-from perception.specs import pallet_pose_at_node
-from sim.scenario import Scenario, SimError, load_scenario
-from sim.simulator import Simulator
+from palletpilot.cli import main
+from palletpilot.geometry import SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.frames import load_bundle
+from palletpilot.perception.specs import pallet_pose_at_node
+from palletpilot.sim.scenario import Scenario, SimError, load_scenario
+from palletpilot.sim.simulator import Simulator
 
-MISSIONS = Path(__file__).resolve().parents[1] / "missions"
+MISSIONS = bundled_path("missions")
 
 
 def scenario(dy: float = 0.0, dyaw_deg: float = 0.0, node: str = "floor_b2", loaded: bool = False) -> Scenario:

@@ -1,0 +1,136 @@
+"""Behaviours that move the truck: follow a route, set the fork height, wait, charge.
+
+Public API: `FollowRoute`, `SetForks`, `Wait`, `ReturnToRoadmap`, `Charge`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from palletpilot.control.errors import ControlError
+from palletpilot.control.follower import FollowerStatus
+from palletpilot.executor.behaviour import Behaviour, Context
+from palletpilot.executor.errors import CONTROLLER_ERROR, NO_ROUTE, TaskFailed
+from palletpilot.roadmap import RoadmapError, reference_path
+from palletpilot.roadmap.planner import Route
+
+
+class FollowRoute(Behaviour):
+    """Plan (or take) a route and follow it with the path follower until the forklift stands at its end."""
+
+    def __init__(self, target: Callable[[Context], str], via: Callable[[Context], Route] | None = None) -> None:
+        self.target = target
+        self.via = via
+        self.route: Route | None = None
+
+    def start(self, ctx: Context) -> None:
+        goal = self.target(ctx)
+        try:
+            self.route = self.via(ctx) if self.via else ctx.planner.plan(ctx.at_node, goal, start_yaw=ctx.heading)
+        except RoadmapError as exc:
+            raise TaskFailed(NO_ROUTE, str(exc)) from None
+        if not self.route.edges:
+            return
+        path = reference_path(self.route)
+        ctx.planned_paths.append(
+            [(float(x), float(y)) for x, y in zip(path.stacked("x"), path.stacked("y"), strict=True)]
+        )
+        self.timeout_s = 30.0 + 4.0 * path.length / 0.5
+        ctx.follower.start(path)
+        ctx.log("route", nodes=self.route.nodes, length_m=round(self.route.length, 3))
+
+    def update(self, ctx: Context) -> str | None:
+        assert self.route is not None
+        if not self.route.edges:
+            return "done"
+        v = ctx.vehicle
+        try:
+            cmd = ctx.follower.update(ctx.now(), v.localization(), v.speed, v.steering)
+        except ControlError as exc:
+            raise TaskFailed(CONTROLLER_ERROR, str(exc)) from None
+        v.drive(cmd.speed, cmd.steering)
+        if cmd.status is FollowerStatus.SUCCEEDED:
+            v.stop()
+            last = self.route.edges[-1]
+            ctx.at_node, ctx.heading = self.route.nodes[-1], last.yaw_end
+            ctx.last_route = self.route
+            return "done"
+        if cmd.status is FollowerStatus.FAILED:
+            raise TaskFailed(CONTROLLER_ERROR, "the path follower failed")
+        return None
+
+    def stop(self, ctx: Context) -> None:
+        ctx.follower.stop()
+        ctx.vehicle.stop()
+
+
+class SetForks(Behaviour):
+    """Move the forks to a height (m) and wait until they are there."""
+
+    timeout_s = 30.0
+
+    def __init__(self, height: Callable[[Context], float], check: Callable[[Context], None] | None = None) -> None:
+        self.height = height
+        self.check = check
+        self.target = 0.0
+
+    def start(self, ctx: Context) -> None:
+        mast = ctx.params.mast
+        self.target = min(max(self.height(ctx), mast.min_height), mast.max_height)
+        ctx.vehicle.stop()
+        ctx.vehicle.set_fork_height(self.target)
+
+    def resume(self, ctx: Context) -> None:
+        ctx.vehicle.set_fork_height(self.target)
+
+    def update(self, ctx: Context) -> str | None:
+        if abs(ctx.vehicle.fork_height - self.target) > 0.002:
+            return None
+        if self.check:
+            self.check(ctx)
+        return "done"
+
+
+class Wait(Behaviour):
+    """Stand still for a time (s)."""
+
+    def __init__(self, seconds: Callable[[Context], float]) -> None:
+        self.seconds = seconds
+        self.until = 0.0
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        self.until = ctx.now() + self.seconds(ctx)
+        self.timeout_s = self.seconds(ctx) + 10.0
+
+    def update(self, ctx: Context) -> str | None:
+        return "done" if ctx.now() >= self.until else None
+
+
+class ReturnToRoadmap(FollowRoute):
+    """After a pickup at temporary nodes, back out to the node before them, so they can be removed."""
+
+    def __init__(self) -> None:
+        super().__init__(lambda ctx: ctx.at_node, via=self._route)
+
+    @staticmethod
+    def _route(ctx: Context) -> Route:
+        if not ctx.roadmap.node(ctx.pre_node).temporary or ctx.node_before is None:
+            return Route([ctx.pre_node], [])
+        return Route([ctx.pre_node, ctx.node_before], [ctx.roadmap.edge(ctx.pre_node, ctx.node_before)])
+
+
+class Charge(Behaviour):
+    """Stand at the charger for some minutes, or until the battery reports a level."""
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        self.until = ctx.now() + 60.0 * (ctx.task.minutes or 0.0)
+        self.timeout_s = 60.0 * (ctx.task.minutes or 240.0) + 10.0
+        if ctx.task.until_level is not None and not hasattr(ctx.vehicle, "battery_level"):
+            raise TaskFailed("no_battery_reading", "charging until a level needs a battery reading this vehicle lacks")
+
+    def update(self, ctx: Context) -> str | None:
+        if ctx.task.until_level is not None:
+            return "done" if ctx.vehicle.battery_level >= ctx.task.until_level else None  # type: ignore[attr-defined]
+        return "done" if ctx.now() >= self.until else None

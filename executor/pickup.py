@@ -1,0 +1,296 @@
+"""The adaptive Pickup's own behaviours: calibrate, estimate the pallet, re-plan, safety check.
+
+Perception runs off the control loop (`ctx.jobs`): a state grabs its frame(s) while the truck stands,
+submits the work and polls for the result each tick, so its timeout fires and the vehicle keeps being
+commanded while perception runs. A result computed from a frame older than the vehicle's last motion
+(`ctx.last_motion_s`) is never used: the frame is grabbed again.
+
+Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from palletpilot.executor.behaviour import Behaviour, Context, TemporaryNodes
+from palletpilot.executor.errors import (
+    CALIBRATION_FAILED,
+    NO_FEASIBLE_APPROACH,
+    PALLET_NOT_FOUND,
+    SAFETY_CHECK_FAILED,
+    STILL_MISALIGNED,
+    TaskFailed,
+)
+from palletpilot.executor.jobs import Job
+from palletpilot.geometry import SE2
+from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
+from palletpilot.perception.calibration import CalibrationError
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.pallet import PalletEstimate, fuse_estimates
+from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet
+from palletpilot.perception.view import pickup_view
+from palletpilot.roadmap import Direction, Edge, Node, NodeType, RoadmapError, connect
+
+STANDING_SPEED = 1e-3
+"""m/s: below this the vehicle stands (frames for perception are taken only then)."""
+
+
+def _stale(ctx: Context, frame_s: float) -> bool:
+    """True when the vehicle or its forks moved after the frame was taken."""
+    return ctx.last_motion_s > frame_s
+
+
+def _frame_time(ctx: Context, frame: FrameBundle) -> float:
+    stamp = frame.stamp_s
+    return ctx.clock_now() if stamp is None else stamp
+
+
+class CalibrateCamera(Behaviour):
+    """Calibrate the camera from the forks and the floor; retry once, then fail (the last good stays)."""
+
+    timeout_s = 20.0
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        self.job: Job[Calibration] | None = None
+        self.frame: FrameBundle | None = None
+        self.frame_s = 0.0
+        self.errors: list[str] = []
+
+    def update(self, ctx: Context) -> str | None:
+        perception = ctx.perception
+        assert perception is not None
+        if self.job is None:
+            if abs(ctx.vehicle.speed) > STANDING_SPEED:
+                ctx.vehicle.stop()
+                return None
+            frame = ctx.frame()
+            if frame is None:
+                return None
+            self.frame, self.frame_s = frame, _frame_time(ctx, frame)
+            self.job = ctx.jobs.submit(
+                "calibrate",
+                lambda: perception.calibrate([frame]),
+                latency_s=ctx.settings.calibration_latency_s,
+                delay_of=perception,
+            )
+            return None
+        if not self.job.poll(ctx.clock_now()):
+            return None
+        job, self.job = self.job, None
+        if _stale(ctx, self.frame_s):
+            ctx.log("perception_result_discarded", state="calibrate", reason="the vehicle moved after the frame")
+            return None
+        try:
+            calibration = job.result()
+        except (CalibrationError, PerceptionError) as exc:
+            self.errors.append(str(exc))
+            ctx.log("calibration_failed", attempt=len(self.errors), error=str(exc))
+            if len(self.errors) > ctx.settings.calibration_retries:
+                raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {self.errors[-1]}") from None
+            return None
+        ctx.calibration = calibration
+        ctx.record.setdefault("calibrations", []).append(calibration.to_json())
+        ctx.log("calibrated", xyz_m=calibration.to_json()["xyz_m"], quality=calibration.quality)
+        self._check_view(ctx, calibration)
+        return "done"
+
+    def _check_view(self, ctx: Context, calibration: Calibration) -> None:
+        """A mount too steep for the Pickup explains a later "no entry face" or a hidden load."""
+        assert self.frame is not None
+        h, w = self.frame.depth.shape
+        view = pickup_view(
+            calibration.T_forklift_camera,
+            self.frame.K,
+            (w, h),
+            ctx.forks,
+            ctx.pallet_type,
+            fork_clearance_m=ctx.settings.fork_clearance,
+        )
+        problems = view.problems()
+        if problems:
+            ctx.log("camera_mount_warning", problems=problems)
+
+    def stop(self, ctx: Context) -> None:
+        if self.job is not None:
+            self.job.cancel()
+
+
+class EstimatePallet(Behaviour):
+    """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned.
+
+    Takes `frames_per_estimate` frames on consecutive ticks (each with its localization fix) while the
+    truck stands, estimates them off the loop and fuses the estimates.
+    """
+
+    timeout_s = 20.0
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        ctx.attempts += 1
+        self.frames: list[tuple[FrameBundle, SE2, float]] = []
+        self.job: Job[tuple[list[PalletEstimate], list[str]]] | None = None
+
+    def update(self, ctx: Context) -> str | None:
+        perception, calibration = ctx.perception, ctx.calibration
+        assert perception is not None and calibration is not None
+        wanted = max(1, ctx.settings.frames_per_estimate)
+        if self.job is None:
+            if abs(ctx.vehicle.speed) > STANDING_SPEED:
+                ctx.vehicle.stop()
+                self.frames.clear()
+                return None
+            frame = ctx.frame()
+            if frame is not None:
+                self.frames.append((frame, ctx.vehicle.localization(), _frame_time(ctx, frame)))
+            if len(self.frames) < wanted:
+                return None
+            taken = list(self.frames)
+
+            def estimate() -> tuple[list[PalletEstimate], list[str]]:
+                estimates, errors = [], []
+                for f, pose, _ in taken:
+                    try:
+                        estimates.append(perception.estimate_pallet(f, calibration, pose))
+                    except PerceptionError as exc:
+                        errors.append(str(exc))
+                return estimates, errors
+
+            self.job = ctx.jobs.submit(
+                "estimate_pallet", estimate, latency_s=wanted * ctx.settings.estimate_latency_s, delay_of=perception
+            )
+            return None
+        if not self.job.poll(ctx.clock_now()):
+            return None
+        job, self.job = self.job, None
+        if _stale(ctx, min(t for _, _, t in self.frames)):
+            ctx.log("perception_result_discarded", state="estimate_pallet", reason="the vehicle moved after the frames")
+            self.frames.clear()
+            return None
+        estimates, errors = job.result()
+        if not estimates:
+            raise TaskFailed(PALLET_NOT_FOUND, errors[-1] if errors else "no pallet estimate")
+        return self._judge(ctx, fuse_estimates(estimates))
+
+    def _judge(self, ctx: Context, est: PalletEstimate) -> str:
+        assert est.T_world_pallet is not None
+        ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
+        node = ctx.roadmap.node(ctx.pallet_node)
+        tolerances = AlignmentTolerances.from_geometry(
+            ctx.forks,
+            ctx.pallet_type,
+            lateral_margin_m=ctx.settings.lateral_margin,
+            longitudinal_margin_m=ctx.settings.longitudinal_margin,
+            yaw_limit_deg=ctx.settings.yaw_limit_deg,
+        )
+        al = check_alignment(est.T_world_pallet, node, tolerances)
+        world = est.T_world_pallet.to_se2()
+        entry: dict[str, Any] = {
+            "problems": list(al.problems),
+            "attempt": ctx.attempts,
+            "against_node": ctx.pallet_node,
+            "T_world_pallet": {
+                "x_m": round(world.x, 4),
+                "y_m": round(world.y, 4),
+                "yaw_deg": round(math.degrees(world.yaw), 3),
+            },
+            "lateral_mm": round(al.lateral_m * 1e3, 1),
+            "longitudinal_mm": round(al.longitudinal_m * 1e3, 1),
+            "yaw_deg": round(math.degrees(al.yaw_rad), 3),
+            "aligned": al.aligned,
+        }
+        ctx.record.setdefault("estimates", []).append(entry)
+        ctx.log("pallet_estimate", **entry)
+        if al.aligned:
+            return "aligned"
+        if ctx.attempts >= ctx.settings.max_attempts:
+            raise TaskFailed(
+                STILL_MISALIGNED,
+                f"pallet still off after {ctx.attempts} estimates: {entry['lateral_mm']} mm lateral, "
+                f"{entry['longitudinal_mm']} mm along, {entry['yaw_deg']} deg",
+            )
+        return "misaligned"
+
+    def stop(self, ctx: Context) -> None:
+        if self.job is not None:
+            self.job.cancel()
+
+
+def add_temporary_nodes(ctx: Context, spec: TemporaryNodes) -> None:
+    """Add a re-plan's temporary pallet and pre-pallet nodes and their edges to the task's overlay.
+
+    Raises `TaskFailed(no_feasible_approach)` when no drivable curve joins `spec.before` to the new
+    pre-pallet node. Used by `Replan` and, with the journalled record, by a resume.
+    """
+    assert ctx.overlay is not None
+    original = ctx.roadmap.node(ctx.task.node)
+    original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+    before = ctx.roadmap.node(spec.before)
+    try:
+        curve = connect(SE2(before.pose.x, before.pose.y, spec.heading), spec.pre_pose, ctx.params.max_curvature)
+    except RoadmapError as exc:
+        raise TaskFailed(NO_FEASIBLE_APPROACH, f"no feasible approach to the estimated pallet: {exc}") from None
+    ov = ctx.overlay
+    ov.add_node(Node(spec.pre, NodeType.PRE_PALLET, spec.pre_pose))
+    ov.add_node(Node(spec.pallet, NodeType.PALLET, spec.pallet_pose, height=original.height, pre_pallet=spec.pre))
+    entry_speed = ctx.roadmap.edge(original_pre.id, original.id).speed_limit
+    ov.add_edge(Edge(before.id, spec.pre, curve, Direction.FORWARD, 0.5))
+    ov.add_edge(Edge(spec.pre, before.id, curve.reversed(), Direction.REVERSE, 0.5))
+    ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed))
+    ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed))
+    ctx.temporary.append(spec)
+    ctx.log("replanned", pallet=spec.pallet, pre_pallet=spec.pre, curve=curve.kind)
+
+
+class Replan(Behaviour):
+    """Add temporary pallet and pre-pallet nodes from the estimate, joined to the node before by a curve."""
+
+    def update(self, ctx: Context) -> str | None:
+        assert ctx.estimated_pallet is not None and ctx.overlay is not None
+        original = ctx.roadmap.node(ctx.task.node)
+        original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+        standoff = original.pose.distance_to(original_pre.pose)
+        new_pallet_pose = node_pose_for_pallet(ctx.estimated_pallet)
+        k = ctx.attempts
+        spec = TemporaryNodes(
+            k=k,
+            pallet=f"{ctx.task.node}~{k}",
+            pre=f"{original_pre.id}~{k}",
+            pallet_pose=new_pallet_pose,
+            pre_pose=new_pallet_pose @ SE2(-standoff, 0.0, 0.0),
+            before=ctx.node_before or "",
+            heading=ctx.heading,
+        )
+        add_temporary_nodes(ctx, spec)
+        ctx.pallet_node, ctx.pre_node = spec.pallet, spec.pre
+        ctx.record.setdefault("temporary_nodes", []).append(
+            {
+                "pallet": spec.pallet,
+                "pre_pallet": spec.pre,
+                "x_m": round(new_pallet_pose.x, 4),
+                "y_m": round(new_pallet_pose.y, 4),
+                "yaw_deg": round(math.degrees(new_pallet_pose.yaw), 3),
+            }
+        )
+        return "done"
+
+
+class SafetyCheck(Behaviour):
+    """Both fork-tip beams must pass through the pockets: never enter when one stops at the pallet."""
+
+    def update(self, ctx: Context) -> str | None:
+        pre = ctx.roadmap.node(ctx.pre_node)
+        pallet = ctx.roadmap.node(ctx.pallet_node)
+        face = pre.pose.distance_to(pallet.pose) + ENTRY_GAP_M - ctx.forks.tip_x  # tips to the entry face
+        need = face + ctx.pallet_type.length - ctx.settings.beam_margin
+        left, right = ctx.vehicle.proximity_ranges()
+        ctx.log("safety_check", left_m=round(left, 3), right_m=round(right, 3), need_m=round(need, 3))
+        if left < need or right < need:
+            raise TaskFailed(
+                SAFETY_CHECK_FAILED,
+                f"proximity beams blocked: left {left:.2f} m, right {right:.2f} m, a pocket passes beyond {need:.2f} m",
+            )
+        return "done"
