@@ -123,6 +123,13 @@ def test_pickup_then_delivery(tmp_path):
     assert not pallet.carried and pallet.T_world_pallet.t[2] == 0.0
     assert pallet.T_world_pallet.to_se2().distance_to(drop) < 0.2  # set down at the drop node
     assert r.runner.ctx.at_node == "drop_pre"
+    # The report and every event line are strict JSON (RFC 8259): no NaN / Infinity (beam ranges are null).
+    for text in [(tmp_path / "report" / "report.json").read_text(), *open(tmp_path / "report" / "events.jsonl")]:
+        json.loads(text, parse_constant=_reject)
+
+
+def _reject(name: str) -> None:
+    raise ValueError(f"not strict JSON: {name}")
 
 
 def test_no_adapt_baseline_refuses_a_misplaced_pallet(tmp_path):
@@ -210,6 +217,31 @@ def test_pause_holds_the_vehicle_still(tmp_path):
     r = run_simulated(path, scenario=sc, on_start=pause_between_5_and_15_s)
     assert r.success
     assert poses and all(p.isclose(poses[0], atol=1e-6) for p in poses)  # stood still while paused
+
+
+def test_a_report_that_cannot_be_written_is_exit_3_with_one_line(tmp_path, capsys, monkeypatch):
+    import errno
+    import os
+
+    path = mission_file(tmp_path, [{"type": "move", "node": "b1"}])
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "report.json").write_text("{}")
+    real_fsync = os.fsync
+
+    def full_disk_for_reports(fd: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").split("/")[-1].startswith(".report.json"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", full_disk_for_reports)
+    code = main(["run", str(path), "--report", str(report), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 3, err  # the mission succeeded; its report did not land
+    lines = [line for line in err.splitlines() if line]
+    assert len(lines) == 1 and "report.json" in lines[0] and "No space left on device" in lines[0]
+    assert not (report / "report.json").exists()  # the older run's report is gone, never shown as this one's
+    assert (report / "trajectory.png").exists() and (report / "events.jsonl").exists()
 
 
 def test_mission_diagram(tmp_path):

@@ -160,3 +160,33 @@ def test_cli_calibrate(tmp_path, capsys):
     assert main(["calibrate", str(path), "--forks", str(broken)]) == 2
     assert "width" in capsys.readouterr().err
     assert math.isfinite(doc["pan_deg"])
+
+
+def test_calibrate_out_is_replaced_only_by_a_good_calibration_written_whole(tmp_path, capsys, monkeypatch):
+    import errno
+    import os
+
+    frame, _ = render()
+    good_frame = save_bundle(tmp_path / "f.npz", frame)
+    bad_frame = save_bundle(tmp_path / "bad.npz", _without(frame, SemanticClass.FORKS))
+    forks = str(MISSIONS / "forks.yaml")
+    out = tmp_path / "calibration.json"
+    assert main(["calibrate", str(good_frame), "--forks", forks, "--out", str(out)]) == 0
+    good = out.read_bytes()
+    load_calibration(out)
+
+    # A failed calibration leaves the last good file as it was.
+    assert main(["calibrate", str(bad_frame), "--forks", forks, "--out", str(out)]) == 2
+    assert out.read_bytes() == good
+
+    # A full disk: exit 3, one line naming the file, no traceback, the old file whole, no temporary left.
+    def full_disk(_fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    capsys.readouterr()
+    monkeypatch.setattr(os, "fsync", full_disk)
+    assert main(["calibrate", str(good_frame), "--forks", forks, "--out", str(out)]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "No space left on device" in err[0]
+    assert out.read_bytes() == good
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.npz", "calibration.json", "f.npz"]
