@@ -11,4 +11,5 @@ BENCHMARKS: dict[str, str] = {
     "pallet": "palletpilot.bench.pallet",
     "mpc": "palletpilot.bench.mpc",
     "missions": "palletpilot.bench.missions",
+    "faults": "palletpilot.bench.faults",
 }

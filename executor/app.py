@@ -37,7 +37,7 @@ from palletpilot.executor.report import REPORT_FILES, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
 from palletpilot.geometry import OutputError
-from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.perception.specs import node_pose_for_pallet
 from palletpilot.roadmap import NodeType, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
@@ -183,7 +183,7 @@ def resume_simulated(
     mission = load_mission(mission_path)
     if _sha256(mission.map_path) != meta["map_sha256"]:
         raise ResumeError(f"{mission.map_path}: changed since the run started; the journal cannot be resumed")
-    scenario = Scenario.model_validate(meta["scenario"])
+    scenario = validate_model(meta["scenario"], Scenario, f"{journal}: scenario", ResumeError)
     scenario.folder = Path(meta["scenario_folder"])
     sim = Simulator(scenario, seed=int(meta["seed"]))
     point = ResumePoint(book.checkpoints(), resumes=book.mark_resumed())

@@ -20,6 +20,7 @@ TIMEOUT = "timeout"
 CANCELLED = "cancelled"
 SENSOR_TIMEOUT = "sensor_timeout"
 VEHICLE_FAULT = "vehicle_fault"
+LOCALIZATION_FAULT = "localization_fault"
 INTERNAL_ERROR = "internal_error"
 
 

@@ -29,7 +29,16 @@ from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.behaviour import Behaviour, Context, Settings
 from palletpilot.executor.clock import Clock, SimClock, WallClock
 from palletpilot.executor.controls import Controls
-from palletpilot.executor.errors import CANCELLED, COLLISION, INTERNAL_ERROR, SENSOR_TIMEOUT, TIMEOUT, TaskFailed
+from palletpilot.executor.errors import (
+    CANCELLED,
+    COLLISION,
+    INTERNAL_ERROR,
+    LOCALIZATION_FAULT,
+    SENSOR_TIMEOUT,
+    TIMEOUT,
+    VEHICLE_FAULT,
+    TaskFailed,
+)
 from palletpilot.executor.jobs import Jobs
 from palletpilot.executor.mission import Mission
 from palletpilot.executor.ports import PerceptionService, VehiclePort
@@ -256,7 +265,7 @@ class Runner:
                 and self.settings.return_on_failure
                 and ctx.pre_node
                 and not self.controls.cancelled
-                and result.reason not in (COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR)
+                and result.reason not in (COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR, VEHICLE_FAULT, LOCALIZATION_FAULT)
             ):
                 self._return_to_pre_pallet()
         result.result = model.state

@@ -5,13 +5,16 @@
 - a vehicle that does not follow its commands: its measured speed stays more than `speed_tolerance`
   (m/s) away from what the commands make a truck of these limits do, for `command_persist_s` ->
   `vehicle_fault`;
+- a localization that jumps: between two ticks the fix moves more than the truck can have moved
+  (|v| dt, and the yaw its steering allows) by over `localization_jump_m` or `localization_jump_deg`
+  -> `localization_fault` (the truck would otherwise steer its true self off the path to follow it);
 - a streak of `overrun_streak` control ticks that started late (wall clock) -> `vehicle_fault`: the
   truck no longer gets its commands at the control rate.
 
 Each raises `TaskFailed` with the reason and the measured figure in the message; the runner then stops
 the vehicle. `CommandedVehicle` wraps a `VehiclePort` to remember what was commanded.
 
-Public API: `WatchdogLimits`, `Watchdogs`, `CommandedVehicle`, `SENSOR_TIMEOUT`, `VEHICLE_FAULT`.
+Public API: `WatchdogLimits`, `Watchdogs`, `CommandedVehicle`.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from typing import Any
 
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.clock import Clock
-from palletpilot.executor.errors import SENSOR_TIMEOUT, VEHICLE_FAULT, TaskFailed
+from palletpilot.executor.errors import LOCALIZATION_FAULT, SENSOR_TIMEOUT, VEHICLE_FAULT, TaskFailed
 from palletpilot.executor.ports import VehiclePort
+from palletpilot.geometry import SE2, wrap_angle
 from palletpilot.perception.frames import FrameBundle
 
 
@@ -36,6 +40,8 @@ class WatchdogLimits:
     speed_tolerance: float = 0.2
     command_persist_s: float = 0.5
     overrun_streak: int = 5
+    localization_jump_m: float = 0.15
+    localization_jump_deg: float = 5.0
 
 
 class CommandedVehicle:
@@ -97,11 +103,13 @@ class Watchdogs:
         self._v_expected: float | None = None
         self._cmd_prev = 0.0
         self._bad_since: float | None = None
+        self._last_fix: SE2 | None = None
 
     def reset(self) -> None:
-        """Forget the speed history (after a pause or a resume)."""
+        """Forget the speed and pose history (after a pause or a resume)."""
         self._v_expected = None
         self._bad_since = None
+        self._last_fix = None
 
     def check(self, now: float, vehicle: CommandedVehicle, clock: Clock) -> None:
         """All per-tick checks; raises `TaskFailed` (`sensor_timeout`, `vehicle_fault`)."""
@@ -118,6 +126,26 @@ class Watchdogs:
                 "the truck no longer gets its commands at the control rate",
             )
         self._check_speed(now, vehicle, clock.dt)
+        self._check_jump(vehicle, clock.dt)
+
+    def _check_jump(self, vehicle: CommandedVehicle, dt: float) -> None:
+        """Compare the fix's move since the last tick with what the measured speed allows (world frame)."""
+        fix = vehicle.localization()
+        last, self._last_fix = self._last_fix, fix
+        if last is None:
+            return
+        travel = abs(vehicle.speed) * dt + self.params.max_accel * dt * dt
+        moved = math.hypot(fix.x - last.x, fix.y - last.y)
+        turned = abs(math.degrees(wrap_angle(fix.yaw - last.yaw)))
+        turn_allowed = math.degrees(travel * self.params.max_curvature)
+        lim = self.limits
+        if moved - travel > lim.localization_jump_m or turned - turn_allowed > lim.localization_jump_deg:
+            raise TaskFailed(
+                LOCALIZATION_FAULT,
+                f"localization jumped {moved:.2f} m / {turned:.1f} deg in {dt:.2f} s where the truck at "
+                f"{vehicle.speed:.2f} m/s moves {travel:.2f} m (limits +{lim.localization_jump_m} m, "
+                f"+{lim.localization_jump_deg} deg)",
+            )
 
     def _check_speed(self, now: float, vehicle: CommandedVehicle, dt: float) -> None:
         """Compare the measured speed with a reference driven by the commands alone.

@@ -83,7 +83,9 @@ class _Fault(_Strict):
             got = "both given" if self.at_s is not None else "neither given"
             raise ValueError(f"give exactly one trigger, at_s or state ({got})")
         if self.state is None:
-            extra = sorted({"after_s", "task"} & self.model_fields_set)
+            # (their defaults are fine: a dumped scenario, e.g. in a journal, carries them)
+            defaults = {"after_s": 0.0, "task": None}
+            extra = [n for n in defaults if n in self.model_fields_set and getattr(self, n) != defaults[n]]
             if extra:
                 raise ValueError(f"{' and '.join(extra)}: only with a state trigger, not with at_s")
         return self
@@ -309,14 +311,16 @@ class FaultInjector:
     def _start(self, a: _Armed, t: float) -> None:
         a.start_t = t
         self.injected.append(
-            {"kind": a.kind, "t_s": t, "event": "start", "index": a.index, **a.spec.trigger(), **a.spec.params()}
+            {"kind": a.kind, "t_s": round(t, 3), "event": "start", "index": a.index}
+            | a.spec.trigger()
+            | a.spec.params()
         )
         if a.kind == "kill":
             os.kill(os.getpid(), signal.SIGKILL)
 
     def _end(self, a: _Armed, t: float) -> None:
         a.ended = True
-        self.injected.append({"kind": a.kind, "t_s": t, "event": "end", "index": a.index, "hits": a.hits})
+        self.injected.append({"kind": a.kind, "t_s": round(t, 3), "event": "end", "index": a.index, "hits": a.hits})
 
     def _active(self, kind: str) -> list[_Armed]:
         return [a for a in self._armed if a.kind == kind and a.active]

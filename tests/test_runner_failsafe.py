@@ -192,6 +192,30 @@ def test_a_vehicle_that_ignores_its_commands_is_a_vehicle_fault(tmp_path: Path) 
     assert any(kind == "emergency_stop" for _, kind, _ in vehicle.commands)
 
 
+def test_a_localization_jump_stops_the_truck_with_a_localization_fault(tmp_path: Path) -> None:
+    vehicle = FakeVehicle(SE2(0, 0, 0))
+    jumped: list[float] = []
+    real_localization = vehicle.localization
+
+    def localization() -> SE2:
+        pose = real_localization()
+        return pose @ SE2(0.0, 0.5, 0.0) if vehicle.t > 2.0 else pose  # 0.5 m sideways from t = 2 s on
+
+    vehicle.localization = localization  # type: ignore[method-assign]
+
+    def step(dt: float) -> None:
+        vehicle.step(dt)
+        if vehicle.t > 2.0 and not jumped:
+            jumped.append(vehicle.t)
+
+    runner = _runner(tmp_path, vehicle, CrashingFollower(after=10**6), step=step)
+    assert runner.run() is False
+    result = runner.results[0]
+    assert result.reason == "localization_fault" and "jumped 0.50 m" in (result.message or "")
+    assert runner.stops[0]["t_s"] - jumped[0] < 0.11  # the next tick
+    assert abs(vehicle.v) < 1e-3
+
+
 def test_cancel_and_pause_through_controls(tmp_path: Path) -> None:
     vehicle = FakeVehicle(SE2(0, 0, 0))
     controls = Controls()

@@ -89,6 +89,9 @@ def test_example_fault_entries_load(tmp_path: Path) -> None:
     jump = sc.faults[4]
     assert jump.kind == "localization_jump" and jump.duration_s is None  # until the end
     assert sc.faults[7].state == "lift" and sc.faults[7].after_s == 0.5 and sc.faults[7].task == 1
+    # A journal stores the scenario as dumped JSON, defaults included; it must load back the same.
+    again = Scenario.model_validate(sc.model_dump(mode="json"))
+    assert again.faults == sc.faults
 
 
 @pytest.mark.parametrize(
