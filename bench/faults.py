@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.sim.faults import FAULT_KINDS
 
 MISSIONS = bundled_path("missions")
 STANDSTILL_MPS = 1e-3
@@ -55,15 +56,7 @@ PICKUP_STATES = (
     "return_to_roadmap",
 )
 DELIVERY_STATES = ("drive_to_pre_drop", "raise_forks", "enter", "lower", "reverse_out")
-KINDS = (
-    "camera_drop",
-    "camera_freeze",
-    "perception_exception",
-    "perception_slow",
-    "localization_jump",
-    "solver_failure",
-    "vehicle_ignores_commands",
-)
+KINDS = tuple(k for k in FAULT_KINDS if k != "kill")  # a kill is drawn apart: its run is resumed
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

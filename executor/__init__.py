@@ -1,5 +1,16 @@
-"""The mission executor and the `palletpilot` CLI (`executor.cli:main`).
+"""The mission executor: missions, task state machines, the fail-safe runner, reports and the CLI.
 
-So far: the CLI's map, plan and bench commands. Missions, task state machines and the runner come
-with the executor issue.
+Modules (public API in each module's docstring):
+
+- `mission`: mission files (`load_mission`, `validate_mission`); `tasks`: the task state machines as
+  data (`TASK_SPECS`, `build_machine`) and their behaviours (`behaviour`, `driving`, `pickup`).
+- `ports`: the interfaces the runner drives (`VehiclePort`, `PerceptionService`), apart from their
+  implementations (the simulator in `sim`, `LocalPerception` here, a robot adapter later).
+- `runner`: `Runner`, the per-tick loop: behaviours, watchdogs, pause / cancel, fail-safe stops,
+  checkpoints; `clock` (`SimClock`, `WallClock`), `jobs` (perception off the loop), `watchdog`,
+  `controls` (signals), `errors` (`TaskFailed` and the reason codes), `results` (`TaskResult`).
+- `journal` (SQLite) and `resume` (`Checkpointer`, `ResumePoint`): crash-safe progress and resuming.
+- `app`: `run_simulated`, `resume_simulated` (the simulator wired to the runner); `report`: report.json,
+  trajectory.png; `progress`: the progress line.
+- `cli`: the `palletpilot` commands (the console script is `palletpilot.cli:main`, which adds `bench`).
 """

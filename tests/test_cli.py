@@ -76,6 +76,15 @@ def test_bench_roadmap_prints_its_figures(capsys):
     assert out["queries"] == 5 and out["plan_ms_median"] > 0
 
 
+def test_bench_faults_prints_its_safety_figures(capsys):
+    assert main(["bench", "faults", "--json", "--runs", "2", "--seed", "4", "--kill-rate", "0"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["runs"] == 2 and out["kill_runs"] == 0 and sum(out["faults_fired"].values()) >= 1
+    assert out["collisions"] == 0 and out["unstopped_failures"] == 0 and out["invalid_reports"] == 0
+    assert sum(out["reasons"].values()) == out["outcomes"]["failed"]
+    assert {"p50", "p99", "max", "n"} <= set(out["fault_to_standstill_s"])
+
+
 def test_unknown_bench(capsys):
     assert main(["bench", "nope"]) == 2
     assert "unknown benchmark 'nope'" in capsys.readouterr().err
