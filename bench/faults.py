@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -91,7 +92,7 @@ def _fault(rng: np.random.Generator) -> dict[str, Any]:
 def _jump(rng: np.random.Generator) -> dict[str, Any]:
     """A 0.5 m localization jump in a random direction (forklift frame), for a while or for good."""
     angle = float(rng.uniform(-np.pi, np.pi))
-    doc = {"dx": round(0.5 * np.cos(angle), 3), "dy": round(0.5 * np.sin(angle), 3)}
+    doc = {"dx": round(0.5 * math.cos(angle), 3), "dy": round(0.5 * math.sin(angle), 3)}
     return doc if rng.random() < 0.5 else {**doc, "duration_s": round(float(rng.uniform(0.2, 2.0)), 2)}
 
 
