@@ -104,6 +104,7 @@ class WallClock:
         self.overrun_streak = 0
         self._max_streak = 0
         self._late_s: list[float] = []
+        self._overrun_at: list[tuple[float, float]] = []  # (clock time s, late s) of the first overruns
 
     def now(self) -> float:
         """Seconds since the start (wall clock, monotonic)."""
@@ -120,6 +121,8 @@ class WallClock:
         self._ticks += 1
         if late > self.overrun_s:
             self._overruns += 1
+            if len(self._overrun_at) < 20:
+                self._overrun_at.append((started - self._t0, late))
             self.overrun_streak += 1
             self._max_streak = max(self._max_streak, self.overrun_streak)
             self._next = started + self.dt  # restart the schedule: no burst of catch-up ticks
@@ -130,7 +133,8 @@ class WallClock:
             self._step(self.dt)
 
     def stats(self) -> dict[str, Any]:
-        """Ticks, overruns and the tick start jitter (ms) against the schedule."""
+        """Ticks, overruns (with the first 20: when, how late) and the tick start jitter (ms) against the
+        schedule."""
         late_ms = np.asarray(self._late_s) * 1e3
         jitter: dict[str, float | None] = {"p50": None, "p99": None, "max": None}
         if late_ms.size:
@@ -146,4 +150,5 @@ class WallClock:
             "overrun_streak": self.overrun_streak,
             "max_overrun_streak": self._max_streak,
             "jitter_ms": jitter,
+            "overruns_at": [{"t_s": round(t, 3), "late_ms": round(late * 1e3, 1)} for t, late in self._overrun_at],
         }
