@@ -1,7 +1,8 @@
 """`palletpilot bench missions`: seeded pickups of misplaced pallets, adaptive against the paper's original.
 
 Each run: one pallet at a random pallet node of the example map (floor or rack, empty or loaded),
-misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal and +-10 deg, D435 noise with label
+misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal (in a rack at most 0.13 m deeper:
+`RACK_DEEPER_MAX_M`) and +-10 deg, D435 noise with label
 noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5) with a random per-run perturbation,
 localization noise; the forklift starts at the aisle node before the pallet's pre-pallet node and runs
 a single pickup. The same scenarios are run adaptively and with `--no-adapt` (no camera, only the
@@ -23,6 +24,10 @@ import yaml
 from palletpilot.geometry.fileio import bundled_path
 
 MISSIONS = bundled_path("missions")
+RACK_DEEPER_MAX_M = 0.13
+"""A rack pallet stands at most this much deeper than its node: further, the mast would meet the rack
+beam before the fork tips reach the back blocks (`Settings.rack_overrun` + the far tolerance), and the
+Pickup refuses it (`no_feasible_approach`) rather than touch the rack."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,6 +47,7 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
     out = []
     for i in range(runs):
         node = str(rng.choice(pallets))
+        rack = roadmap.node(node).height > 0.0
         pre = roadmap.pre_pallet_of(node)
         before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
         out.append(
@@ -69,7 +75,7 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
                     "pallets": [
                         {
                             "node": node,
-                            "dx": float(rng.uniform(-0.30, 0.30)),
+                            "dx": float(rng.uniform(-0.30, RACK_DEEPER_MAX_M if rack else 0.30)),
                             "dy": float(rng.uniform(-0.30, 0.30)),
                             "dyaw_deg": float(rng.uniform(-10.0, 10.0)),
                             "loaded": bool(rng.random() < 0.5),

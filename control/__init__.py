@@ -1,7 +1,8 @@
 """Control: the forklift's kinematic model, vehicle limits, and the path followers.
 
 Public API:
-- `VehicleParams`, `load_vehicle(path)`: the vehicle file (`missions/forklift.yaml`), shared with `sim/`.
+- `VehicleParams` (with `MastParams`, `BodyParams`), `load_vehicle(path)`: the vehicle file
+  (`missions/forklift.yaml`), shared with `sim/`.
 - `KinematicModel`: state (x, y, yaw, steering), inputs (speed, steering rate); CasADi and numpy.
 - Path followers (non-blocking, for the 20 Hz tick): `start(path)`, `update(t, T_world_forklift,
   speed, steering) -> DriveCommand(speed, steering, status)`, `stop()`; `FollowerStatus` running /
@@ -16,9 +17,10 @@ from palletpilot.control.follower import DriveCommand, Follower, FollowerConfig,
 from palletpilot.control.model import KinematicModel
 from palletpilot.control.mpc import MpcConfig, MpcFollower, MpcWeights
 from palletpilot.control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
-from palletpilot.control.vehicle import MastParams, VehicleParams, load_vehicle
+from palletpilot.control.vehicle import BodyParams, MastParams, VehicleParams, load_vehicle
 
 __all__ = [
+    "BodyParams",
     "ControlError",
     "DriveCommand",
     "Follower",

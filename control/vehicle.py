@@ -27,6 +27,25 @@ class MastParams(BaseModel):
     lower_speed: float = Field(0.3, gt=0.0)
 
 
+class BodyParams(BaseModel):
+    """The truck's body as a box in the forklift frame (origin at the fork heels on the floor, x to the
+    fork tips): from `rear_x` to `front_x` (m, behind the heels: negative), `width` (m) and `height` (m,
+    the overhead guard). The default is a 1.5 t three-wheel counterbalance truck."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    rear_x: float = Field(-1.85, lt=0.0)
+    front_x: float = Field(-0.12, le=0.0)
+    width: float = Field(1.10, gt=0.0)
+    height: float = Field(2.20, gt=0.0)
+
+    @model_validator(mode="after")
+    def _length(self) -> BodyParams:
+        if self.rear_x >= self.front_x:
+            raise ValueError("rear_x must be behind front_x")
+        return self
+
+
 class VehicleParams(BaseModel):
     """Kinematic and actuator limits of the forklift (SI units unless the name says otherwise)."""
 
@@ -45,6 +64,7 @@ class VehicleParams(BaseModel):
     )
     actuator_lag_s: float = Field(0.1, ge=0.0, description="first-order lag of speed and steering")
     mast: MastParams = MastParams()
+    body: BodyParams = BodyParams()
 
     @model_validator(mode="after")
     def _mast_range(self) -> VehicleParams:

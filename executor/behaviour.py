@@ -86,6 +86,9 @@ class Settings:
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least
     return_on_failure: bool = False
     adapt: bool = True
+    # At a rack node (height > 0) the truck's heels go at most this far past the node along its heading:
+    # further, the mast meets the rack's front beam. A pallet standing deeper is entered only this far.
+    rack_overrun: float = 0.10
     # Simulated clocks only: how long perception takes in simulated time (s), per call / per frame.
     calibration_latency_s: float = 0.3
     estimate_latency_s: float = 0.1

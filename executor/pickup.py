@@ -179,14 +179,7 @@ class EstimatePallet(Behaviour):
         assert est.T_world_pallet is not None
         ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
         node = ctx.roadmap.node(ctx.pallet_node)
-        tolerances = AlignmentTolerances.from_geometry(
-            ctx.forks,
-            ctx.pallet_type,
-            lateral_margin_m=ctx.settings.lateral_margin,
-            longitudinal_margin_m=ctx.settings.longitudinal_margin,
-            yaw_limit_deg=ctx.settings.yaw_limit_deg,
-        )
-        al = check_alignment(est.T_world_pallet, node, tolerances)
+        al = check_alignment(est.T_world_pallet, node, _tolerances(ctx))
         world = est.T_world_pallet.to_se2()
         entry: dict[str, Any] = {
             "problems": list(al.problems),
@@ -217,6 +210,44 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
+
+
+def _tolerances(ctx: Context) -> AlignmentTolerances:
+    """The alignment tolerances of this truck's forks and the pallet type, less the Settings' margins."""
+    return AlignmentTolerances.from_geometry(
+        ctx.forks,
+        ctx.pallet_type,
+        lateral_margin_m=ctx.settings.lateral_margin,
+        longitudinal_margin_m=ctx.settings.longitudinal_margin,
+        yaw_limit_deg=ctx.settings.yaw_limit_deg,
+    )
+
+
+def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
+    """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
+    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
+
+    Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would no longer reach the
+    pallet's back row of blocks (the alignment's far tolerance): the mast would meet the rack first.
+    """
+    original = ctx.roadmap.node(ctx.task.node)
+    if original.height <= 0.0:
+        return pallet_node_pose
+    rel = original.pose.inv() @ pallet_node_pose
+    excess = rel.x - ctx.settings.rack_overrun
+    if excess <= 0.0:
+        return pallet_node_pose
+    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
+    far = _tolerances(ctx).longitudinal_far_m
+    if back > far:
+        raise TaskFailed(
+            NO_FEASIBLE_APPROACH,
+            f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
+            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
+            f"tips would then stop {back * 1e3:.0f} mm short (more than the {far * 1e3:.0f} mm that still "
+            "reaches the back blocks)",
+        )
+    return pallet_node_pose @ SE2(-back, 0.0, 0.0)
 
 
 def add_temporary_nodes(ctx: Context, spec: TemporaryNodes) -> None:
@@ -253,7 +284,7 @@ class Replan(Behaviour):
         original = ctx.roadmap.node(ctx.task.node)
         original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
         standoff = original.pose.distance_to(original_pre.pose)
-        new_pallet_pose = node_pose_for_pallet(ctx.estimated_pallet)
+        new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.estimated_pallet))
         k = ctx.attempts
         spec = TemporaryNodes(
             k=k,

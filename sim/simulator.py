@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -31,6 +32,7 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
+from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids
 from palletpilot.sim.forklift import LocalizationNoise, SimForklift
 from palletpilot.sim.scenario import Scenario, SimError
 from palletpilot.sim.snapshot import restore_snapshot, take_snapshot
@@ -76,6 +78,7 @@ class RackSupport:
     T_world_rack: SE3
     rack: Rack
     top_z: float
+    node: str = ""
 
     def supports(self, xy: np.ndarray) -> bool:
         """True when world point `xy` lies over this rack bay."""
@@ -120,7 +123,7 @@ class Simulator:
         self.camera = CameraModel.d435(scenario.camera.width, scenario.camera.height)
         self.T_forklift_camera_true = self._perturbed_mount()
         self.time = 0.0
-        self.collisions: list[str] = []
+        self.collisions: list[dict[str, Any]] = []  # contacts: t_s, kind, id, part, message (the first stops all)
 
         self.pallets: list[SimPallet] = []
         for placement in scenario.pallets:
@@ -132,6 +135,7 @@ class Simulator:
             self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded))
         self._racks = self._build_racks()
         self._fixed_mesh = self._build_fixed_mesh()
+        self._fixed_solids = self._build_fixed_solids()
         self._forks_local = forks_mesh(self.forks, 0.0, SE3.identity())  # forklift frame, lift height 0
         self._renderer: RaycastRenderer | None = None
         self._beam_scene: o3d.t.geometry.RaycastingScene | None = None
@@ -156,7 +160,7 @@ class Simulator:
                 # The rack bay sits so that a pallet placed exactly at the node overhangs the front beam.
                 T_world_floor_pallet = pallet_pose_at_node(node.pose, 0.0)
                 T_world_rack = T_world_floor_pallet @ SE3.from_translation(rack.pallet_overhang, 0.0, 0.0)
-                racks.append(RackSupport(T_world_rack, rack, node.height))
+                racks.append(RackSupport(T_world_rack, rack, node.height, node.id))
         return racks
 
     def _build_fixed_mesh(self) -> LabeledMesh:
@@ -170,6 +174,81 @@ class Simulator:
             pose = SE2(c.x, c.y, math.radians(c.yaw_deg))
             parts.append(person_mesh(pose) if c.kind == "person" else object_box_mesh(pose, c.size))
         return LabeledMesh.merge(parts)
+
+    def _build_fixed_solids(self) -> list[Solid]:
+        """Walls, rack uprights and beams, people and boxes as solids for the contact test."""
+        xy = np.array([n.pose.xy for n in self.roadmap.nodes()])
+        lo, hi = xy.min(axis=0) - 6.0, xy.max(axis=0) + 6.0
+        t = 0.1  # half the wall thickness
+        origin = SE2(0.0, 0.0, 0.0)
+        solids = [
+            box_solid("wall", "south", origin, (lo[0], lo[1] - t, 0.0), (hi[0], lo[1] + t, 4.0)),
+            box_solid("wall", "north", origin, (lo[0], hi[1] - t, 0.0), (hi[0], hi[1] + t, 4.0)),
+            box_solid("wall", "west", origin, (lo[0] - t, lo[1], 0.0), (lo[0] + t, hi[1], 4.0)),
+            box_solid("wall", "east", origin, (hi[0] - t, lo[1], 0.0), (hi[0] + t, hi[1], 4.0)),
+        ]
+        for r in self._racks:
+            solids += rack_solids(r.rack, r.T_world_rack.to_se2(), r.node)
+        for i, c in enumerate(self.scenario.clutter):
+            pose = SE2(c.x, c.y, math.radians(c.yaw_deg))
+            if c.kind == "person":  # legs, torso and arms of `world.person_mesh`
+                solids.append(box_solid("person", f"clutter[{i}]", pose, (-0.13, -0.31, 0.0), (0.13, 0.31, 1.75)))
+            else:
+                sx, sy, sz = c.size
+                solids.append(
+                    box_solid("box", f"clutter[{i}]", pose, (-0.5 * sx, -0.5 * sy, 0.0), (0.5 * sx, 0.5 * sy, sz))
+                )
+        return solids
+
+    def _pallet_solids(self, p: SimPallet, kind: str = "pallet") -> list[Solid]:
+        """A pallet (and its load) as solids: the whole pallet box, the cargo box."""
+        pt, pose = self.pallet_type, p.T_world_pallet.to_se2()
+        z0 = float(p.T_world_pallet.t[2])
+        load_kind = "load" if kind == "pallet" else "carried load"
+        solids = [
+            box_solid(kind, p.node, pose, (0.0, -0.5 * pt.width, z0), (pt.length, 0.5 * pt.width, z0 + pt.height))
+        ]
+        if p.loaded:
+            cx, cy, cz = CARGO_SIZE
+            x0, top = 0.5 * (pt.length - cx), z0 + pt.height
+            solids.append(box_solid(load_kind, p.node, pose, (x0, -0.5 * cy, top), (x0 + cx, 0.5 * cy, top + cz)))
+        return solids
+
+    def _truck_solids(self) -> tuple[list[Solid], list[Solid]]:
+        """The truck as solids: (body and carried pallets with loads, forks and backrest)."""
+        pose, body = self.true_pose, self.vehicle.body
+        hull = [
+            box_solid(
+                "body",
+                "truck",
+                pose,
+                (body.rear_x, -0.5 * body.width, 0.0),
+                (body.front_x, 0.5 * body.width, body.height),
+            )
+        ]
+        for p in self.pallets:
+            if p.carried:
+                hull += self._pallet_solids(p, kind="carried pallet")
+        forks = [box_solid(name, "truck", pose, lo, hi) for name, lo, hi in self._fork_boxes()]
+        return hull, forks
+
+    def _check_contacts(self) -> None:
+        """Record the first contact of the truck with anything and stop it there."""
+        if self.collisions:
+            return
+        hull, forks = self._truck_solids()
+        standing = [p for p in self.pallets if not p.carried]
+        pallets = [s for p in standing for s in self._pallet_solids(p)]
+        loads = [s for s in pallets if s.kind == "load"]
+        # The forks meet pallets through their boards and blocks (`_contact`), loads and the rest here.
+        contact = first_contact(hull, self._fixed_solids + pallets) or first_contact(forks, self._fixed_solids + loads)
+        if contact is not None:
+            self._collide(contact.to_json(self.time))
+
+    def _collide(self, record: dict[str, Any]) -> None:
+        self.collisions.append(record)
+        self.forklift.stop()
+        self.forklift.state.v = 0.0  # blocked
 
     def _pallet_mesh(self, p: SimPallet) -> LabeledMesh:
         return pallet_mesh(p.T_world_pallet, self.pallet_type, cargo_size=CARGO_SIZE if p.loaded else None)
@@ -236,7 +315,7 @@ class Simulator:
 
     def faults(self) -> list[str]:
         """Safety faults: the contacts of the forks or backrest with a pallet."""
-        return [f"collision: {c}" for c in self.collisions]
+        return [f"collision: {c['message']}" for c in self.collisions]
 
     @property
     def T_world_forklift3(self) -> SE3:
@@ -326,6 +405,7 @@ class Simulator:
         self.forklift.step(dt)
         self.time += dt
         self._update_pallets()
+        self._check_contacts()
 
     def _fork_boxes(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
         h = self.fork_height
@@ -357,9 +437,11 @@ class Simulator:
                 continue
             hit = self._contact(p, T_wf)
             if hit is not None and not self.collisions:
-                self.collisions.append(f"t={self.time:.2f} s: {hit} of the pallet at '{p.node}'")
-                self.forklift.stop()
-                self.forklift.state.v = 0.0  # blocked by the pallet
+                part = hit.partition(" hit ")[0]
+                message = f"t={self.time:.2f} s: {hit} of the pallet at '{p.node}'"
+                self._collide(
+                    {"t_s": round(self.time, 3), "kind": "pallet", "id": p.node, "part": part, "message": message}
+                )
         if changed:
             self._static_changed()
 

@@ -16,7 +16,7 @@ forklift   pose {x, y, yaw}              T_world_forklift (m, rad)
            speed_cmd, steering_cmd, fork_height_cmd, odometer (m)
 pallets    [{node, loaded, carried, T_world_pallet, T_forks_pallet}]
            SE3 as {xyz: [m], quat_xyzw: [...]}; T_forks_pallet (relative to the fork bottoms) or null
-collisions                               the contacts recorded so far (strings)
+collisions                               the contacts recorded so far (t_s, kind, id, part, message)
 rng        {sim, forklift, localization, camera}: numpy bit-generator states
 T_forklift_camera_true                   the perturbed camera mount (drawn at construction)
 ```
@@ -164,7 +164,7 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
             }
             for p in sim.pallets
         ],
-        "collisions": list(sim.collisions),
+        "collisions": [dict(c) for c in sim.collisions],
         "rng": {key: rng_to_doc(g) for key, g in _generators(sim).items()},
         "T_forklift_camera_true": se3_to_doc(sim.T_forklift_camera_true),
     }
@@ -231,8 +231,8 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
             }
         )
     collisions = _field(doc, "collisions", "snapshot")
-    if not isinstance(collisions, list) or not all(isinstance(c, str) for c in collisions):
-        raise _FieldError("collisions must be a list of strings")
+    if not isinstance(collisions, list) or not all(isinstance(c, dict) and "message" in c for c in collisions):
+        raise _FieldError("collisions must be a list of contact records (t_s, kind, id, part, message)")
     rng_doc = _field(doc, "rng", "snapshot")
     rngs = {
         key: rng_state_from_doc(g, _field(rng_doc, key, "rng"), f"rng.{key}") for key, g in _generators(sim).items()

@@ -113,6 +113,33 @@ def test_rack_pickup_at_height(tmp_path):
     assert r.sim.collisions == []
 
 
+@pytest.mark.parametrize(("deeper_m", "picked"), [(0.12, True), (0.25, False)])
+def test_a_pallet_deep_in_a_rack_is_entered_only_as_far_as_the_mast_allows(tmp_path, deeper_m, picked):
+    # The rack's front beam stands 0.22 m past the node's heels before the mast (0.12 m behind the heels)
+    # meets it: the truck goes at most Settings.rack_overrun (0.10 m) past the node.
+    sc = scenario("a1", [{"node": "rack_a2", "dx": deeper_m, "dy": 0.05, "loaded": True}])
+    poses = []
+
+    def record_true_poses(runner):
+        tick = runner.clock.tick
+
+        def traced():
+            tick()
+            poses.append(runner.ctx.vehicle.true_pose)
+
+        runner.clock.tick = traced
+
+    r = run(tmp_path, [{"type": "pickup", "node": "rack_a2"}], sc, on_start=record_true_poses)
+    assert r.sim.collisions == []
+    assert r.success is picked and r.sim.pallets[0].carried is picked, r.runner.results[0].message
+    node = r.runner.ctx.roadmap.node("rack_a2").pose
+    deepest = max((node.inv() @ pose).x for pose in poses)
+    assert deepest < 0.10 + 0.03  # the heels' true position, never more than the overrun (+ tracking)
+    if not picked:
+        result = r.runner.results[0]
+        assert result.reason == "no_feasible_approach" and "deeper in the rack" in (result.message or "")
+
+
 def test_pickup_then_delivery(tmp_path):
     sc = scenario("b1", [{"node": "floor_b2", "dy": 0.1, "dyaw_deg": -4.0}])
     tasks = [{"type": "pickup", "node": "floor_b2"}, {"type": "delivery", "node": "drop"}]

@@ -218,7 +218,7 @@ def test_restore_refuses_other_versions_and_other_pallets():
 SNAPSHOT_ATTRIBUTES = {"seed", "rng", "forklift", "_loc_rng", "_cam_rng", "T_forklift_camera_true", "time"}
 SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets"}
 FIXED_ATTRIBUTES = {"scenario", "roadmap", "vehicle", "forks", "pallet_type", "_pallet_parts", "_part_lo", "_part_hi"}
-FIXED_ATTRIBUTES |= {"localization_noise", "camera", "_racks", "_fixed_mesh", "_forks_local"}
+FIXED_ATTRIBUTES |= {"localization_noise", "camera", "_racks", "_fixed_mesh", "_forks_local", "_fixed_solids"}
 CACHE_ATTRIBUTES = {"_renderer", "_beam_scene"}  # dropped by restore (`_static_changed`)
 
 

@@ -102,7 +102,9 @@ def test_a_misaligned_entry_is_a_collision():
     assert min(sim.proximity_ranges()) > face + sim.pallet_type.length
     drive_straight(sim, 2.46)
     assert len(sim.collisions) == 1
-    assert "fork hit block_" in sim.collisions[0] and "'floor_b2'" in sim.collisions[0]
+    hit = sim.collisions[0]
+    assert hit["kind"] == "pallet" and hit["id"] == "floor_b2" and hit["part"].endswith("fork")
+    assert "fork hit block_" in hit["message"] and "'floor_b2'" in hit["message"]
     assert sim.forklift.stopped
     sim.drive(0.5, 0.0)  # a blocked forklift does not move on
     pose = sim.true_pose
@@ -115,7 +117,7 @@ def test_forks_too_low_hit_nothing_in_the_pocket_but_too_high_hit_the_deck():
     sim = Simulator(scenario())
     set_forks(sim, 0.08)  # blade top 0.13 m: above the 0.100 m pocket, into the cross boards
     drive_straight(sim, 2.46)
-    assert sim.collisions and "cross_board" in sim.collisions[0]
+    assert sim.collisions and "cross_board" in sim.collisions[0]["message"]
 
 
 def test_rack_pallet_lifts_off_the_beams():
@@ -182,3 +184,46 @@ def test_cli_sim_render_writes_a_bundle(tmp_path, capsys):
     assert (frame.labels == 8).sum() > 1000  # the loaded pallet is in view (pallet-full)
     assert main(["sim", "render", str(tmp_path / "none.yaml"), "--out", str(out)]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def clutter_scenario(clutter: list[dict]) -> Scenario:
+    sc = Scenario.model_validate({"map": "warehouse.yaml", "start": "floor_b2_pre", "clutter": clutter})
+    sc.folder = MISSIONS
+    return sc
+
+
+def test_forks_driving_into_a_person_are_a_contact_that_stops_the_truck():
+    # floor_b2_pre stands at (22.5, 11.5) facing +x; the fork tips end 1.15 m ahead.
+    sim = Simulator(clutter_scenario([{"kind": "person", "x": 24.5, "y": 11.5, "yaw_deg": 180}]))
+    set_forks(sim, 0.1)
+    drive_straight(sim, 2.0)
+    (hit,) = sim.collisions
+    assert hit["kind"] == "person" and hit["id"] == "clutter[0]" and hit["part"] in ("left fork", "right fork")
+    assert sim.speed == 0.0
+    tips_x = sim.true_pose.x + sim.forks.tip_x
+    assert 24.5 - 0.14 < tips_x < 24.5 - 0.12 + 0.03  # stopped at the person's legs, not through them
+    sim.drive(0.5, 0.0)  # a truck that touched something stays stopped
+    for _ in range(20):
+        sim.step()
+    assert sim.speed == 0.0 and sim.faults() == [f"collision: {hit['message']}"]
+
+
+def test_the_body_reversing_into_a_box_is_a_contact():
+    box = {"kind": "box", "x": 20.2, "y": 11.5, "yaw_deg": 30, "size": [0.6, 0.4, 0.5]}
+    sim = Simulator(clutter_scenario([box]))
+    drive_straight(sim, -1.5)
+    (hit,) = sim.collisions
+    assert (hit["kind"], hit["id"], hit["part"]) == ("box", "clutter[0]", "body")
+
+
+def test_nothing_touches_when_the_truck_passes_beside_or_above():
+    from palletpilot.geometry import SE2
+    from palletpilot.sim.contacts import Solid, first_contact
+
+    fork = Solid("left fork", "truck", SE2(0.0, 0.0, 0.3), (0.6, 0.05), (1.0, 1.05))
+    beam_below = Solid("rack", "r beam 0", SE2(0.2, 0.0, 0.0), (0.03, 1.3), (0.88, 1.0))
+    beside = Solid("person", "p", SE2(0.0, 0.6, 1.0), (0.13, 0.31), (0.0, 1.75))
+    assert first_contact([fork], [beam_below, beside]) is None
+    turned_into = Solid("person", "p", SE2(0.4, 0.25, 1.0), (0.13, 0.31), (0.0, 1.75))  # on the fork's line
+    contact = first_contact([fork], [beam_below, turned_into])
+    assert contact is not None and contact.solid.id == "p" and contact.part == "left fork"
