@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import math
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,7 +37,6 @@ from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
 from palletpilot.geometry import OutputError
 from palletpilot.geometry.fileio import bundled_path, validate_model
-from palletpilot.perception.specs import node_pose_for_pallet
 from palletpilot.roadmap import NodeType, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
 from palletpilot.sim.scenario import Scenario, SimError, load_scenario
@@ -315,7 +313,6 @@ def _write(
     point: ResumePoint | None,
     injector: FaultInjector,
 ) -> Path:
-    truth = [node_pose_for_pallet(p.T_world_pallet) for p in sim.pallets]
     return write_report(
         folder,
         mission.name,
@@ -325,6 +322,7 @@ def _write(
         runner.trajectory,
         runner.ctx.planned_paths,
         truth_pallets=[(p.T_world_pallet).to_se2() for p in sim.pallets],
+        obstacles=sim.obstacle_outlines(),
         extra={
             "run_id": run_id,
             "seed": sim.seed,
@@ -336,16 +334,7 @@ def _write(
             "collisions": sim.collisions,
             "stops": runner.stops,
             "faults_injected": injector.injected,
-            "pallets_true": [
-                {
-                    "node": p.node,
-                    "x_m": round(t.x, 4),
-                    "y_m": round(t.y, 4),
-                    "yaw_deg": round(math.degrees(t.yaw), 3),
-                    "carried": p.carried,
-                }
-                for p, t in zip(sim.pallets, truth, strict=True)
-            ],
+            "pallets": sim.pallet_records(),
         },
     )
 

@@ -49,6 +49,7 @@ def write_report(
     planned_paths: list[list[tuple[float, float]]],
     truth_pallets: list[SE2] | None = None,
     extra: dict[str, Any] | None = None,
+    obstacles: list[tuple[str, str, np.ndarray]] | None = None,
 ) -> Path:
     """Write `trajectory.png`, then `report.json` into `folder`, atomically; returns the JSON path.
 
@@ -71,9 +72,12 @@ def write_report(
             for r in results
         ],
     }
-    png = _plot(mission_name, success, results, roadmap, trajectory, planned_paths, truth_pallets)
+    png = _plot(mission_name, success, results, roadmap, trajectory, planned_paths, truth_pallets, obstacles or [])
     write_atomic(folder / "trajectory.png", png)
     return write_json(folder / "report.json", doc)
+
+
+_OBSTACLE_COLOURS = {"rack": "#4a5a8a", "person": "#e41a1c", "box": "#8c6d31"}
 
 
 def _pallet_outline(pose: SE2, pallet: PalletType) -> np.ndarray:
@@ -89,10 +93,17 @@ def _plot(
     trajectory: list[tuple[float, float, float, float]],
     planned: list[list[tuple[float, float]]],
     truth: list[SE2] | None,
+    obstacles: list[tuple[str, str, np.ndarray]],
 ) -> bytes:
-    """The trajectory plot as PNG bytes."""
+    """The trajectory plot as PNG bytes: map, racks and clutter, planned and driven paths, pallets."""
     fig, ax = plt.subplots(figsize=(11, 9), dpi=110)
     draw_roadmap(roadmap, ax, labels=True)
+    labelled: set[str] = set()
+    for kind, _id, corners in obstacles:
+        colour = _OBSTACLE_COLOURS.get(kind, "#7f7f7f")
+        label = None if kind in labelled else kind
+        labelled.add(kind)
+        ax.fill(corners[:, 0], corners[:, 1], color=colour, alpha=0.55, lw=0, label=label)
     for i, path in enumerate(planned):
         xy = np.array(path)
         ax.plot(xy[:, 0], xy[:, 1], "-", color="#1f77b4", lw=1.2, alpha=0.6, label="planned" if i == 0 else None)

@@ -32,7 +32,7 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
-from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids
+from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids, solid_corners
 from palletpilot.sim.forklift import LocalizationNoise, SimForklift
 from palletpilot.sim.scenario import Scenario, SimError
 from palletpilot.sim.snapshot import restore_snapshot, take_snapshot
@@ -69,6 +69,12 @@ class SimPallet:
     loaded: bool
     carried: bool = False
     T_forks_pallet: SE3 | None = field(default=None, repr=False)  # relative to the fork bottoms while carried
+    lifted: bool = False  # the truck has lifted it at least once
+    initial: SE3 | None = field(default=None, repr=False)  # where the scenario put it
+
+    def __post_init__(self) -> None:
+        if self.initial is None:
+            self.initial = self.T_world_pallet
 
 
 @dataclass(frozen=True)
@@ -199,6 +205,31 @@ class Simulator:
                     box_solid("box", f"clutter[{i}]", pose, (-0.5 * sx, -0.5 * sy, 0.0), (0.5 * sx, 0.5 * sy, sz))
                 )
         return solids
+
+    def obstacle_outlines(self) -> list[tuple[str, str, np.ndarray]]:
+        """Racks, people and boxes for drawing: (kind, id, floor corners (4, 2) in the world frame, m)."""
+        return [(s.kind, s.id, solid_corners(s)) for s in self._fixed_solids if s.kind != "wall"]
+
+    def pallet_records(self) -> list[dict[str, Any]]:
+        """Every pallet for the report: `id` (its node), `node`, `initial` and `final` true pose (`x_m`,
+        `y_m`, `yaw_deg` of the pallet frame: the entry face's centre), `loaded`, `carried` (ever lifted)."""
+
+        def pose(T: SE3) -> dict[str, float]:
+            p2 = T.to_se2()
+            return {"x_m": round(p2.x, 4), "y_m": round(p2.y, 4), "yaw_deg": round(math.degrees(p2.yaw), 3)}
+
+        return [
+            {
+                "id": p.node,
+                "node": p.node,
+                "initial": pose(p.initial if p.initial is not None else p.T_world_pallet),
+                "final": pose(p.T_world_pallet),
+                "loaded": p.loaded,
+                "carried": p.lifted,
+                "on_forks": p.carried,
+            }
+            for p in self.pallets
+        ]
 
     def _pallet_solids(self, p: SimPallet, kind: str = "pallet") -> list[Solid]:
         """A pallet (and its load) as solids: the whole pallet box, the cargo box."""
@@ -516,5 +547,5 @@ class Simulator:
         T_forks_pallet = T_forks_world @ p.T_world_pallet
         planar = T_forks_pallet.to_se2().to_se3()  # the pallet settles level on the forks
         p.T_forks_pallet = lift @ planar
-        p.carried = True
+        p.carried = p.lifted = True
         return True

@@ -14,7 +14,7 @@ time                                     simulated time (s)
 forklift   pose {x, y, yaw}              T_world_forklift (m, rad)
            v, steering, fork_height      speed (m/s), steering angle (rad), fork height (m)
            speed_cmd, steering_cmd, fork_height_cmd, odometer (m)
-pallets    [{node, loaded, carried, T_world_pallet, T_forks_pallet}]
+pallets    [{node, loaded, carried, T_world_pallet, T_forks_pallet, lifted, initial}]
            SE3 as {xyz: [m], quat_xyzw: [...]}; T_forks_pallet (relative to the fork bottoms) or null
 collisions                               the contacts recorded so far (t_s, kind, id, part, message)
 rng        {sim, forklift, localization, camera}: numpy bit-generator states
@@ -161,6 +161,8 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
                 "carried": bool(p.carried),
                 "T_world_pallet": se3_to_doc(p.T_world_pallet),
                 "T_forks_pallet": None if p.T_forks_pallet is None else se3_to_doc(p.T_forks_pallet),
+                "lifted": bool(p.lifted),
+                "initial": se3_to_doc(p.initial if p.initial is not None else p.T_world_pallet),
             }
             for p in sim.pallets
         ],
@@ -216,9 +218,9 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
         what = f"pallets[{k}]"
         if _field(p, "node", what) != sim_p.node:
             raise _FieldError(f"{what}.node is {p['node']!r}, the scenario's is {sim_p.node!r}")
-        loaded, carried = _field(p, "loaded", what), _field(p, "carried", what)
-        if not isinstance(loaded, bool) or not isinstance(carried, bool):
-            raise _FieldError(f"{what}: loaded and carried must be true or false")
+        loaded, carried, lifted = (_field(p, key, what) for key in ("loaded", "carried", "lifted"))
+        if not all(isinstance(v, bool) for v in (loaded, carried, lifted)):
+            raise _FieldError(f"{what}: loaded, carried and lifted must be true or false")
         T_forks = _field(p, "T_forks_pallet", what)
         if carried != (T_forks is not None):
             raise _FieldError(f"{what}: a carried pallet needs T_forks_pallet, a resting one none")
@@ -228,6 +230,8 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
                 "carried": carried,
                 "T_world_pallet": se3_from_doc(_field(p, "T_world_pallet", what), f"{what}.T_world_pallet"),
                 "T_forks_pallet": None if T_forks is None else se3_from_doc(T_forks, f"{what}.T_forks_pallet"),
+                "lifted": lifted,
+                "initial": se3_from_doc(_field(p, "initial", what), f"{what}.initial"),
             }
         )
     collisions = _field(doc, "collisions", "snapshot")
@@ -269,6 +273,7 @@ def _apply(sim: Simulator, state: dict[str, Any]) -> None:
     for p, d in zip(sim.pallets, state["pallets"], strict=True):
         p.loaded, p.carried = d["loaded"], d["carried"]
         p.T_world_pallet, p.T_forks_pallet = d["T_world_pallet"], d["T_forks_pallet"]
+        p.lifted, p.initial = d["lifted"], d["initial"]
     sim.collisions = state["collisions"]
     for key, g in _generators(sim).items():
         g.bit_generator.state = state["rng"][key]
