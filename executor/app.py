@@ -25,19 +25,19 @@ from typing import Any, Literal, TextIO
 import numpy as np
 
 from palletpilot.control.mpc import MpcConfig, MpcFollower
-from palletpilot.control.vehicle import load_vehicle
+from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.clock import Clock, SimClock, WallClock
 from palletpilot.executor.controls import Controls
 from palletpilot.executor.journal import Journal, JournalError
-from palletpilot.executor.mission import Mission, load_mission, validate_mission
+from palletpilot.executor.mission import Mission, MissionError, load_mission, validate_mission
 from palletpilot.executor.ports import LocalPerception
 from palletpilot.executor.report import REPORT_FILES, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
 from palletpilot.geometry import OutputError
 from palletpilot.geometry.fileio import bundled_path, validate_model
-from palletpilot.roadmap import NodeType, load_map, map_vehicle_file
+from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
 from palletpilot.sim.scenario import Scenario, SimError, load_scenario
 from palletpilot.sim.simulator import Simulator
@@ -123,7 +123,7 @@ def run_simulated(
     roadmap = load_map(mission.map_path)
     vehicle_file = map_vehicle_file(mission.map_path)
     vehicle = load_vehicle(vehicle_file) if vehicle_file else sim.vehicle
-    validate_mission(mission, roadmap, vehicle, scenario.start, str(mission_path))
+    _validate(mission, roadmap, vehicle, scenario, str(mission_path), scenario_path)
     folder = Path(report_dir).resolve() if report_dir is not None else None
     book = None
     if journal is not None:
@@ -160,6 +160,35 @@ def run_simulated(
         run_id,
         None,
     )
+
+
+def _validate(
+    mission: Mission,
+    roadmap: Roadmap,
+    vehicle: VehicleParams,
+    scenario: Scenario,
+    where: str,
+    scenario_path: str | Path | None,
+) -> None:
+    """The mission's checks (`validate_mission`) plus: the scenario's map is the mission's (same content)."""
+    problems = []
+    scenario_map = scenario.path(scenario.map)
+    try:
+        same = _sha256(scenario_map) == _sha256(mission.map_path)
+    except ResumeError:  # unreadable: the map loaders name the file
+        same = False
+    if not same:
+        source = scenario_path if scenario_path is not None else "the scenario"
+        problems.append(
+            f"{source}: map: {scenario_map} is not the mission's map {mission.map_path}: the simulated "
+            "warehouse must be the one the mission plans on"
+        )
+    try:
+        validate_mission(mission, roadmap, vehicle, scenario.start, where)
+    except MissionError as exc:
+        problems += exc.problems
+    if problems:
+        raise MissionError(problems[0] if len(problems) == 1 else f"{where}: {len(problems)} problems", problems)
 
 
 def resume_simulated(

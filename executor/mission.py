@@ -98,6 +98,8 @@ class Mission(BaseModel):
 
     name: str = "mission"
     map: str
+    loaded_at_start: bool = False
+    """The forks carry a load when the mission starts (default: empty)."""
     tasks: list[Task] = Field(min_length=1)
     folder: Path = Field(Path("."), exclude=True)
 
@@ -118,15 +120,25 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
     """Check every task against the map and the vehicle; raise `MissionError` listing all problems.
 
     Reachability is checked along the chain: from `start`, each task's node must be reachable from
-    where the previous task left the forklift (a pickup or delivery ends at its pre-pallet node).
+    where the previous task left the forklift (a pickup or delivery ends at its pre-pallet node). The
+    load is followed too: no pickup while the forks carry a load, no delivery with empty forks.
     """
     problems: list[str] = []
     planner = Planner(roadmap)
     here = start
     mast = vehicle.mast
+    loaded_by: str | None = "the start (loaded_at_start)" if mission.loaded_at_start else None
     for i, task in enumerate(mission.tasks):
         label = f"{where}: tasks[{i}] ({task.type}"
         node_id = getattr(task, "node", None)
+        if task.type == "pickup":
+            if loaded_by is not None:
+                problems.append(f"{label}): a pickup while the forks still carry the load from {loaded_by}")
+            loaded_by = f"tasks[{i}]"
+        elif task.type == "delivery":
+            if loaded_by is None:
+                problems.append(f"{label}): a delivery with empty forks: no pickup (or loaded_at_start) before it")
+            loaded_by = None
         if node_id is None:
             continue
         label += f" {node_id})"
@@ -140,6 +152,8 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
             problems.append(f"{label}: node '{node_id}' is a {node.type.value} node, a {task.type} needs a {want} node")
             continue
         height = getattr(task, "height", None)
+        if height is None and task.type in ("pickup", "delivery"):
+            height = node.height  # the node's own height, which the task would use
         if height is not None and not (mast.min_height <= height <= mast.max_height - 0.15):
             problems.append(
                 f"{label}: height {height:.2f} m is outside the mast's range "

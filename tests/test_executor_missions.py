@@ -8,6 +8,7 @@ import yaml
 
 from palletpilot.cli import main
 from palletpilot.executor.app import run_simulated
+from palletpilot.control.vehicle import load_vehicle
 from palletpilot.executor.mission import MissionError
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import Scenario
@@ -167,6 +168,31 @@ def test_no_adapt_baseline_refuses_a_misplaced_pallet(tmp_path):
     assert abs(r.sim.speed) < 1e-3
 
 
+def test_the_load_is_followed_through_the_mission(tmp_path):
+    from palletpilot.executor.mission import load_mission, validate_mission
+    from palletpilot.roadmap import load_map
+
+    path = mission_file(
+        tmp_path,
+        [
+            {"type": "pickup", "node": "floor_b2"},
+            {"type": "pickup", "node": "floor_b3"},
+            {"type": "delivery", "node": "drop"},
+            {"type": "delivery", "node": "drop"},
+        ],
+    )
+    mission = load_mission(path)
+    vehicle = load_vehicle(MISSIONS / "forklift.yaml")
+    with pytest.raises(MissionError) as info:
+        validate_mission(mission, load_map(mission.map_path), vehicle, "charger", str(path))
+    problems = info.value.problems
+    assert len(problems) == 2, problems
+    assert "tasks[1] (pickup): a pickup while the forks still carry the load from tasks[0]" in problems[0]
+    assert "tasks[3] (delivery): a delivery with empty forks" in problems[1]
+    starts_loaded = mission.model_copy(update={"loaded_at_start": True, "tasks": mission.tasks[2:3]})
+    validate_mission(starts_loaded, load_map(mission.map_path), vehicle, "charger", str(path))
+
+
 @pytest.mark.parametrize(
     "task, message",
     [
@@ -176,6 +202,9 @@ def test_no_adapt_baseline_refuses_a_misplaced_pallet(tmp_path):
         ({"type": "delivery", "node": "drop", "height": 3.5}, "height 3.50 m is outside the mast's range"),
         ({"type": "move", "node": "island"}, "node 'island' cannot be reached"),
         ({"type": "pickup"}, "tasks[0].pickup.node: Field required"),
+        ({"type": "delivery", "node": "drop"}, "a delivery with empty forks"),
+        ({"type": "pickup", "node": "rack_a1", "height": 1.9}, "height 1.90 m is outside the mast's range"),
+        ({"type": "move", "node": "b1"}, "is not the mission's map"),
     ],
 )
 def test_invalid_missions_are_rejected(tmp_path, capsys, task, message):
