@@ -35,6 +35,7 @@ from palletpilot.executor.ports import LocalPerception
 from palletpilot.executor.report import REPORT_FILES, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
+from palletpilot.executor.trajectory_log import TrajectoryLog
 from palletpilot.geometry import OutputError
 from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
@@ -267,9 +268,14 @@ def _execute(
         injector.skip_states(point.started_states())
     perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type)) if adapt else None
 
+    log: TrajectoryLog | None = None
+
     def step(dt: float) -> None:
         sim.step(dt)
         injector.poll(sim.time)
+        if log is not None:
+            pose = sim.true_pose
+            log.row(sim.time, pose.x, pose.y, pose.yaw, sim.speed, sim.fork_height, sim.load_detected())
 
     start_s = point.t if point is not None else 0.0
     clock: Clock = SimClock(step, start_s=start_s) if clock_kind == "sim" else WallClock(step=step, start_s=start_s)
@@ -286,6 +292,8 @@ def _execute(
                 events = stack.enter_context((folder / "events.jsonl").open("a" if point else "w"))
             except OSError as exc:
                 raise OutputError(f"{folder / 'events.jsonl'}: cannot write: {exc.strerror or exc}") from None
+            log = TrajectoryLog(folder / "trajectory.csv", resume_t=point.t if point else None)
+            stack.callback(log.close)
         if book is not None:
             stack.callback(book.close)
         runner = Runner(

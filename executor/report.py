@@ -1,4 +1,5 @@
-"""Mission reports: `report.json`, `trajectory.png` and `events.jsonl` in a report folder.
+"""Mission reports: `report.json`, `trajectory.png`, `events.jsonl` (and `trajectory.csv`, see
+`executor.trajectory_log`) in a report folder.
 
 `report.json`: the mission, `success`, and per task its type, node, result, reason, attempts, start and
 end time (simulated s), its states with their times and outcomes, the calibrations, the pallet
@@ -30,7 +31,7 @@ from palletpilot.perception.specs import PalletType
 from palletpilot.roadmap import Roadmap
 from palletpilot.roadmap.draw import draw_roadmap
 
-REPORT_FILES = ("report.json", "trajectory.png", "events.jsonl")
+REPORT_FILES = ("report.json", "trajectory.png", "events.jsonl", "trajectory.csv")
 """The files a run writes into its report folder (a new run removes them first)."""
 
 

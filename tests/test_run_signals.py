@@ -176,6 +176,16 @@ def test_a_run_killed_in_every_task_type_resumes_from_its_journal_without_repeat
     lowered = [e for e in events(report) if e["event"] == "state_end" and e["state"] == "lower"]
     assert [e["outcome"] for e in lowered] == ["done"]  # the resumed delivery knew the load was on the forks
 
+    # trajectory.csv survives the kills: one row per tick, time always increasing, the load seen once.
+    import csv
+
+    rows = list(csv.DictReader((report / "trajectory.csv").open()))
+    times = [float(r["t_s"]) for r in rows]
+    assert all(b > a for a, b in zip(times, times[1:], strict=False))
+    assert abs(times[-1] - doc["simulated_s"]) < 0.1 and len(rows) > 0.9 * times[-1] / 0.05
+    loaded = "".join(r["loaded"] for r in rows)
+    assert loaded.strip("0").count("0") == 0 and "1" in loaded  # loaded from the lift to the set-down
+
     again = palletpilot("run", "--resume", str(journal))
     assert again.returncode == 2
     assert again.stderr.count("\n") == 1 and "nothing to resume" in again.stderr
