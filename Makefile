@@ -13,7 +13,7 @@ SYSTEM_LIBS := libusb-1.0-0 libgomp1
 demo: setup
 	$(BIN)/palletpilot map check missions/warehouse.yaml
 	$(BIN)/palletpilot run missions/pickup_delivery.yaml --scenario missions/scenario_demo.yaml --report $(OUT)/demo
-	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl)"
+	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl, trajectory.csv)"
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -25,6 +25,8 @@ class MastParams(BaseModel):
     max_height: float = Field(2.0, gt=0.0)
     lift_speed: float = Field(0.2, gt=0.0)
     lower_speed: float = Field(0.3, gt=0.0)
+    travel_height_empty: float = Field(0.0, ge=0.0, description="fork bottoms while driving empty (m)")
+    travel_height_loaded: float = Field(0.10, ge=0.0, description="fork bottoms while driving a load (m)")
 
 
 class BodyParams(BaseModel):
@@ -63,13 +65,18 @@ class VehicleParams(BaseModel):
         1.5, gt=0.0, description="m/s^2, the safety stop: the truck's own brake, whatever the drive commands"
     )
     actuator_lag_s: float = Field(0.1, ge=0.0, description="first-order lag of speed and steering")
+    creep_speed: float = Field(0.3, gt=0.0, description="m/s, the fastest drive with the forks above travel height")
     mast: MastParams = MastParams()
     body: BodyParams = BodyParams()
 
     @model_validator(mode="after")
     def _mast_range(self) -> VehicleParams:
-        if self.mast.max_height <= self.mast.min_height:
+        m = self.mast
+        if m.max_height <= m.min_height:
             raise ValueError("mast.max_height must be above mast.min_height")
+        for name in ("travel_height_empty", "travel_height_loaded"):
+            if not m.min_height <= getattr(m, name) <= m.max_height:
+                raise ValueError(f"mast.{name} must lie within min_height..max_height")
         if self.emergency_decel < self.max_decel:
             raise ValueError("emergency_decel must be at least max_decel")
         return self

@@ -80,7 +80,6 @@ class Settings:
     yaw_limit_deg: float = 2.0
     fork_clearance: float = 0.025  # fork bottoms above the pallet's underside when entering
     lift_delta: float = 0.08  # lift above the entry height to carry
-    travel_height: float = 0.0  # fork height while driving empty
     calibration_retries: int = 1
     frames_per_estimate: int = 3  # the pallet stands still: averaging frames (and localization fixes) cuts noise
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least

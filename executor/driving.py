@@ -1,6 +1,7 @@
 """Behaviours that move the truck: follow a route, set the fork height, wait, charge.
 
-Public API: `FollowRoute`, `SetForks`, `Wait`, `ReturnToRoadmap`, `Charge`.
+Public API: `FollowRoute` (creeps while the forks are above travel height), `SetForks`, `Wait`,
+`ReturnToRoadmap`, `Charge`, `travel_height`.
 """
 
 from __future__ import annotations
@@ -13,6 +14,15 @@ from palletpilot.executor.behaviour import Behaviour, Context
 from palletpilot.executor.errors import CONTROLLER_ERROR, NO_ROUTE, TaskFailed
 from palletpilot.roadmap import RoadmapError, reference_path
 from palletpilot.roadmap.planner import Route
+
+TRAVEL_HEIGHT_TOLERANCE = 0.05
+"""m: forks higher than this above the travel height make the truck creep (`VehicleParams.creep_speed`)."""
+
+
+def travel_height(ctx: Context) -> float:
+    """The fork height (m) to drive at: the vehicle file's loaded or empty travel height (load sensor)."""
+    mast = ctx.params.mast
+    return mast.travel_height_loaded if ctx.vehicle.load_detected() else mast.travel_height_empty
 
 
 class FollowRoute(Behaviour):
@@ -31,7 +41,8 @@ class FollowRoute(Behaviour):
             raise TaskFailed(NO_ROUTE, str(exc)) from None
         if not self.route.edges:
             return
-        path = reference_path(self.route)
+        raised = ctx.vehicle.fork_height > travel_height(ctx) + TRAVEL_HEIGHT_TOLERANCE
+        path = reference_path(self.route, speed_cap=ctx.params.creep_speed if raised else None)
         ctx.planned_paths.append(
             [(float(x), float(y)) for x, y in zip(path.stacked("x"), path.stacked("y"), strict=True)]
         )

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from palletpilot.executor.behaviour import Behaviour, Context, Settings, TemporaryNodes
-from palletpilot.executor.driving import Charge, FollowRoute, ReturnToRoadmap, SetForks, Wait
+from palletpilot.executor.driving import Charge, FollowRoute, ReturnToRoadmap, SetForks, Wait, travel_height
 from palletpilot.executor.errors import (
     CALIBRATION_FAILED,
     CANCELLED,
@@ -99,6 +99,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
             "enter",
             "lift",
             "reverse_out",
+            "lower_to_travel",
             "return_to_roadmap",
             *_FINAL,
         ),
@@ -115,31 +116,43 @@ TASK_SPECS: dict[str, TaskSpec] = {
             ("done", "safety_check", "enter"),
             ("done", "enter", "lift"),
             ("done", "lift", "reverse_out"),
-            ("done", "reverse_out", "return_to_roadmap"),
+            ("done", "reverse_out", "lower_to_travel"),
+            ("done", "lower_to_travel", "return_to_roadmap"),
             ("done", "return_to_roadmap", "succeeded"),
             ("fail", "*", "failed"),
         ),
     ),
     "pickup_no_adapt": TaskSpec(
-        ("drive_to_pre_pallet", "raise_forks", "safety_check", "enter", "lift", "reverse_out", *_FINAL),
+        (
+            "drive_to_pre_pallet",
+            "raise_forks",
+            "safety_check",
+            "enter",
+            "lift",
+            "reverse_out",
+            "lower_to_travel",
+            *_FINAL,
+        ),
         (
             ("done", "drive_to_pre_pallet", "raise_forks"),
             ("done", "raise_forks", "safety_check"),
             ("done", "safety_check", "enter"),
             ("done", "enter", "lift"),
             ("done", "lift", "reverse_out"),
-            ("done", "reverse_out", "succeeded"),
+            ("done", "reverse_out", "lower_to_travel"),
+            ("done", "lower_to_travel", "succeeded"),
             ("fail", "*", "failed"),
         ),
     ),
     "delivery": TaskSpec(
-        ("drive_to_pre_drop", "raise_forks", "enter", "lower", "reverse_out", *_FINAL),
+        ("drive_to_pre_drop", "raise_forks", "enter", "lower", "reverse_out", "lower_to_travel", *_FINAL),
         (
             ("done", "drive_to_pre_drop", "raise_forks"),
             ("done", "raise_forks", "enter"),
             ("done", "enter", "lower"),
             ("done", "lower", "reverse_out"),
-            ("done", "reverse_out", "succeeded"),
+            ("done", "reverse_out", "lower_to_travel"),
+            ("done", "lower_to_travel", "succeeded"),
             ("fail", "*", "failed"),
         ),
     ),
@@ -220,13 +233,14 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             "enter": lambda: FollowRoute(pallet, via=_edge_route(pre, pallet)),
             "lift": lambda: SetForks(lambda ctx: entry_height(ctx) + s.lift_delta, check=_check_lifted),
             "reverse_out": lambda: FollowRoute(pre, via=_edge_route(pallet, pre)),
+            "lower_to_travel": lambda: SetForks(travel_height),
         }
         if task_type == "pickup":
             table.update(
                 {
                     "calibrate": CalibrateCamera,
                     "estimate_pallet": EstimatePallet,
-                    "lower_forks": lambda: SetForks(lambda ctx: s.travel_height),
+                    "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
                     "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
                     "replan": Replan,
                     "approach": lambda: FollowRoute(pre, via=_edge_route(before, pre)),
@@ -242,6 +256,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             "enter": lambda: FollowRoute(pallet, via=_edge_route(pre, pallet)),
             "lower": lambda: SetForks(entry_height, check=_check_released),
             "reverse_out": lambda: FollowRoute(pre, via=_edge_route(pallet, pre)),
+            "lower_to_travel": lambda: SetForks(travel_height),
         }
     if task_type == "move":
         return {"drive": lambda: FollowRoute(lambda ctx: ctx.task.node)}

@@ -80,8 +80,9 @@ def _sample_edge(edge: Edge, step_m: float) -> tuple[np.ndarray, ...]:
     return smp.s, smp.x, smp.y, np.asarray(wrap_angle(heading)), smp.curvature
 
 
-def reference_path(route: Route, step_m: float = 0.05) -> ReferencePath:
-    """Sample a route at about `step_m` (m) per sample into segments of one travel direction each."""
+def reference_path(route: Route, step_m: float = 0.05, speed_cap: float | None = None) -> ReferencePath:
+    """Sample a route at about `step_m` (m) per sample into segments of one travel direction each; with
+    `speed_cap` (m/s) no sample's speed limit is above it (e.g. creeping with raised forks)."""
     if not route.edges:
         raise RoadmapError(f"route {' -> '.join(route.nodes)} has no edges to follow")
     if step_m <= 0:
@@ -118,9 +119,10 @@ def reference_path(route: Route, step_m: float = 0.05) -> ReferencePath:
         current = edge
         s, x, y, heading, curvature = _sample_edge(edge, step_m)
         offset = s0 if not parts else float(parts[-1][0][-1])
-        speed = np.full_like(s, edge.speed_limit)
+        limit = edge.speed_limit if speed_cap is None else min(edge.speed_limit, speed_cap)
+        speed = np.full_like(s, limit)
         if parts:  # the joint sample already ends the previous edge: keep the slower limit there
-            parts[-1][5][-1] = min(parts[-1][5][-1], edge.speed_limit)
+            parts[-1][5][-1] = min(parts[-1][5][-1], limit)
             s, x, y, heading, curvature, speed = s[1:], x[1:], y[1:], heading[1:], curvature[1:], speed[1:]
         parts.append((s + offset, x, y, heading, curvature, speed))
         names.append(edge.name)

@@ -1,5 +1,6 @@
 """Simulated missions end to end: the adaptive pickup, failures that end cleanly, invalid missions."""
 
+import csv
 import json
 from pathlib import Path
 
@@ -7,8 +8,8 @@ import pytest
 import yaml
 
 from palletpilot.cli import main
-from palletpilot.executor.app import run_simulated
 from palletpilot.control.vehicle import load_vehicle
+from palletpilot.executor.app import run_simulated
 from palletpilot.executor.mission import MissionError
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import Scenario
@@ -110,8 +111,14 @@ def test_rack_pickup_at_height(tmp_path):
     r = run(tmp_path, [{"type": "pickup", "node": "rack_a2"}], sc)
     assert r.success, r.runner.results[0].message
     pallet = r.sim.pallets[0]
-    assert pallet.carried and pallet.T_world_pallet.t[2] > 1.0  # lifted off the 1.0 m beam
+    assert pallet.carried and pallet.T_world_pallet.t[2] < 0.5  # lifted off the 1.0 m beam, carried low
     assert r.sim.collisions == []
+    # Above travel height the truck only creeps; it drives the roadmap with the load at travel height.
+    mast, creep = r.sim.vehicle.mast, r.sim.vehicle.creep_speed
+    rows = list(csv.DictReader((tmp_path / "report" / "trajectory.csv").open()))
+    raised = [r for r in rows if float(r["fork_height_m"]) > mast.travel_height_loaded + 0.05]
+    assert raised and max(abs(float(r["speed_mps"])) for r in raised) <= creep + 0.02
+    assert abs(float(rows[-1]["fork_height_m"]) - mast.travel_height_loaded) < 0.005
 
 
 @pytest.mark.parametrize(("deeper_m", "picked"), [(0.12, True), (0.25, False)])
@@ -151,6 +158,7 @@ def test_pickup_then_delivery(tmp_path):
     assert not pallet.carried and pallet.T_world_pallet.t[2] == 0.0
     assert pallet.T_world_pallet.to_se2().distance_to(drop) < 0.2  # set down at the drop node
     assert r.runner.ctx.at_node == "drop_pre"
+    assert abs(r.sim.fork_height - r.sim.vehicle.mast.travel_height_empty) < 0.005  # empty forks back down
     # The report and every event line are strict JSON (RFC 8259): no NaN / Infinity (beam ranges are null).
     for text in [(tmp_path / "report" / "report.json").read_text(), *open(tmp_path / "report" / "events.jsonl")]:
         json.loads(text, parse_constant=_reject)
