@@ -85,6 +85,13 @@ class Settings:
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least
     return_on_failure: bool = False
     adapt: bool = True
+    # The mission's pallet stands within this envelope of its node (m, m, deg); an estimate outside it is
+    # another pallet or object (`pallet_not_found`), never a reason to re-plan there. Between two estimates
+    # of one pickup the pallet does not move: a jump beyond `estimate_jump` (m) is another object too.
+    envelope_lateral: float = 0.40
+    envelope_longitudinal: float = 0.40
+    envelope_yaw_deg: float = 15.0
+    estimate_jump: float = 0.15
     # At a rack node (height > 0) the truck's heels go at most this far past the node along its heading:
     # further, the mast meets the rack's front beam. A pallet standing deeper is entered only this far.
     rack_overrun: float = 0.10

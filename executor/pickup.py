@@ -23,14 +23,14 @@ from palletpilot.executor.errors import (
     TaskFailed,
 )
 from palletpilot.executor.jobs import Job
-from palletpilot.geometry import SE2
+from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
 from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate, fuse_estimates
-from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet
+from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import Direction, Edge, Node, NodeType, RoadmapError, connect
 
@@ -177,6 +177,7 @@ class EstimatePallet(Behaviour):
 
     def _judge(self, ctx: Context, est: PalletEstimate) -> str:
         assert est.T_world_pallet is not None
+        _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.estimated_pallet)
         ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
         node = ctx.roadmap.node(ctx.pallet_node)
         al = check_alignment(est.T_world_pallet, node, _tolerances(ctx))
@@ -210,6 +211,32 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
+
+
+def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:
+    """The estimated pallet (`T_world_pallet`, SE2) must be the mission's: inside the envelope of the task's
+    node (`Settings.envelope_*`) and where the previous estimate of this pickup saw it; else
+    `pallet_not_found` with the figures, and nothing is re-planned towards it."""
+    st = ctx.settings
+    node = ctx.roadmap.node(ctx.task.node)
+    nominal = pallet_pose_at_node(node.pose, node.height).to_se2()
+    off = nominal.inv() @ pallet
+    yaw_deg = math.degrees(off.yaw)
+    if abs(off.y) > st.envelope_lateral or abs(off.x) > st.envelope_longitudinal or abs(yaw_deg) > st.envelope_yaw_deg:
+        raise TaskFailed(
+            PALLET_NOT_FOUND,
+            f"the pallet seen stands {off.y:+.2f} m to the side, {off.x:+.2f} m along and {yaw_deg:+.1f} deg off "
+            f"node '{node.id}' (envelope +-{st.envelope_lateral:.2f} m, +-{st.envelope_longitudinal:.2f} m, "
+            f"+-{st.envelope_yaw_deg:.0f} deg): not the mission's pallet",
+        )
+    if previous is not None:
+        jump = previous.to_se2().distance_to(pallet)
+        if jump > st.estimate_jump:
+            raise TaskFailed(
+                PALLET_NOT_FOUND,
+                f"the pallet estimate jumped {jump:.2f} m from the previous one (limit {st.estimate_jump:.2f} m): "
+                "another object, not the pallet seen before",
+            )
 
 
 def _tolerances(ctx: Context) -> AlignmentTolerances:
@@ -324,4 +351,34 @@ class SafetyCheck(Behaviour):
                 SAFETY_CHECK_FAILED,
                 f"proximity beams blocked: left {left:.2f} m, right {right:.2f} m, a pocket passes beyond {need:.2f} m",
             )
+        # A clear beam may also pass beside the pallet: with an estimate, each fork must lie in its pocket.
+        if ctx.estimated_pallet is not None:
+            problems = forks_outside_pockets(ctx, ctx.estimated_pallet.to_se2(), ctx.vehicle.localization())
+            if problems:
+                raise TaskFailed(SAFETY_CHECK_FAILED, "; ".join(problems))
         return "done"
+
+
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
+    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
+    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
+    tip's depth. Both poses are in the world frame (SE2)."""
+    forks, pallet = ctx.forks, ctx.pallet_type
+    T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
+    depth = min(pallet.length, forks.length)
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
+    problems = []
+    for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
+        worst = 0.0
+        for x_pallet in (0.0, depth):
+            # the fork's centre line, a line along the forklift's x axis, at this depth in the pallet
+            c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
+            origin = T_pallet_forklift.apply([0.0, fork_y])
+            if abs(c) < 1e-6:
+                worst = math.inf
+                break
+            y = origin[1] + (x_pallet - origin[0]) * s_ / c
+            worst = max(worst, abs(y - pocket_y) - half_free)
+        if worst > 0.0:
+            problems.append(f"the {name} fork would pass {worst * 1e3:.0f} mm beside its pocket")
+    return problems

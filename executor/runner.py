@@ -213,7 +213,7 @@ class Runner:
         result = TaskResult(index, task.type, node, start_s=self.clock.now())
         resuming = start_state is not None and self.resume_point is not None
         if not resuming:
-            ctx.task, ctx.attempts, ctx.calibration, ctx.estimate = task, 0, None, None
+            ctx.task, ctx.attempts, ctx.calibration, ctx.estimate, ctx.estimated_pallet = task, 0, None, None, None
             ctx.temporary = []
             if node is not None and task.type in ("pickup", "delivery"):
                 ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)

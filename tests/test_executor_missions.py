@@ -95,15 +95,16 @@ def test_missing_pallet_fails_cleanly(tmp_path):
 
 
 def test_pallet_too_far_off_fails_cleanly(tmp_path):
-    # Seen and estimated, but turned 45 deg towards the aisle: no curve the forklift can drive
-    # leads from the node before the pre-pallet node to the pallet's new pre-pallet node.
+    # Seen and estimated, but 0.6 m to the side and turned 45 deg: outside the envelope of the node, so
+    # not the mission's pallet; nothing is re-planned towards it.
     sc = scenario("b1", [{"node": "floor_b2", "dx": 0.3, "dy": -0.6, "dyaw_deg": -45.0}])
     r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
     task = r.summary["tasks"][0]
-    assert not r.success and task["reason"] == "no_feasible_approach", task
-    assert "no feasible curve" in r.runner.results[0].message
+    assert not r.success and task["reason"] == "pallet_not_found", task
+    assert "not the mission's pallet" in r.runner.results[0].message
     assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == [] and not r.sim.pallets[0].carried
     assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
+    assert "replan" not in [s["state"] for s in r.runner.results[0].states]
 
 
 def test_rack_pickup_at_height(tmp_path):
