@@ -28,12 +28,20 @@ def travel_height(ctx: Context) -> float:
 class FollowRoute(Behaviour):
     """Plan (or take) a route and follow it with the path follower until the forklift stands at its end."""
 
-    def __init__(self, target: Callable[[Context], str], via: Callable[[Context], Route] | None = None) -> None:
+    def __init__(
+        self,
+        target: Callable[[Context], str],
+        via: Callable[[Context], Route] | None = None,
+        check: Callable[[Context], None] | None = None,
+    ) -> None:
         self.target = target
         self.via = via
+        self.check = check  # runs before the truck moves; raises TaskFailed to refuse
         self.route: Route | None = None
 
     def start(self, ctx: Context) -> None:
+        if self.check is not None:
+            self.check(ctx)
         goal = self.target(ctx)
         try:
             self.route = self.via(ctx) if self.via else ctx.planner.plan(ctx.at_node, goal, start_yaw=ctx.heading)

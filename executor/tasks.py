@@ -32,6 +32,7 @@ from palletpilot.executor.errors import (
     CONTROLLER_ERROR,
     INTERNAL_ERROR,
     NO_FEASIBLE_APPROACH,
+    NO_LOAD,
     NO_ROUTE,
     PALLET_NOT_FOUND,
     PALLET_NOT_LIFTED,
@@ -52,6 +53,7 @@ __all__ = [
     "CONTROLLER_ERROR",
     "INTERNAL_ERROR",
     "NO_FEASIBLE_APPROACH",
+    "NO_LOAD",
     "NO_ROUTE",
     "PALLET_NOT_FOUND",
     "PALLET_NOT_LIFTED",
@@ -206,6 +208,11 @@ def _check_lifted(ctx: Context) -> None:
         raise TaskFailed(PALLET_NOT_LIFTED, "the forks were raised but carry no load")
 
 
+def _check_loaded(ctx: Context) -> None:
+    if not ctx.vehicle.load_detected():
+        raise TaskFailed(NO_LOAD, "a delivery with empty forks: the load sensor feels no load")
+
+
 def _check_released(ctx: Context) -> None:
     if ctx.vehicle.load_detected():
         raise TaskFailed(PALLET_NOT_LIFTED, "the forks were lowered but still carry the load")
@@ -251,7 +258,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
     if task_type == "delivery":
         carry = lambda ctx: _pallet_height(ctx) + s.fork_clearance + s.lift_delta  # noqa: E731
         return {
-            "drive_to_pre_drop": lambda: FollowRoute(pre),
+            "drive_to_pre_drop": lambda: FollowRoute(pre, check=_check_loaded),
             "raise_forks": lambda: SetForks(carry),
             "enter": lambda: FollowRoute(pallet, via=_edge_route(pre, pallet)),
             "lower": lambda: SetForks(entry_height, check=_check_released),

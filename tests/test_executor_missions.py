@@ -315,3 +315,18 @@ def test_mission_diagram(tmp_path):
     text = out.read_text()
     assert "stateDiagram-v2" in text and "estimate_pallet --> lower_forks: misaligned" in text
     assert main(["mission", "diagram", "dance"]) == 2
+
+
+def test_a_delivery_whose_forks_feel_no_load_never_moves(tmp_path):
+    # The mission says the truck starts loaded; the load sensor says otherwise: refuse, stand still.
+    path = tmp_path / "mission.yaml"
+    doc = {
+        "map": str(MISSIONS / "warehouse.yaml"),
+        "loaded_at_start": True,
+        "tasks": [{"type": "delivery", "node": "drop"}],
+    }
+    path.write_text(yaml.safe_dump(doc))
+    r = run_simulated(path, scenario=scenario("c_e", []), report_dir=tmp_path / "report")
+    result = r.runner.results[0]
+    assert not r.success and result.reason == "no_load" and "load sensor" in (result.message or "")
+    assert r.sim.forklift.odometer < 1e-6
