@@ -32,21 +32,24 @@ noise:
   slip_sigma: 0.0                 # relative, per control step
 pallets:                          # placed at roadmap pallet nodes plus the misplacement
   - {node: rack_b3, dx: 0.10, dy: -0.15, dyaw_deg: 5, loaded: true}   # dx, dy in the node's frame (m)
+  - {x: 14.0, y: 2.0, yaw_deg: 90, loaded: false}                      # free on the floor, no node
 clutter:
   - {kind: person, x: 12.0, y: 3.0, yaw_deg: 0}
+  - {kind: person, x: 6.0, y: 18.0, path: [[6.0, 2.0]], speed: 1.2, repeat: true}  # walks the aisle
   - {kind: box, x: 8.0, y: -2.0, yaw_deg: 20, size: [0.6, 0.4, 0.5]}
 ```
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from palletpilot.geometry import SE3, PalletpilotError
+from palletpilot.geometry import SE3, PalletpilotError, wrap_angle
 from palletpilot.geometry.fileio import load_yaml_model
 from palletpilot.sim.camera import CameraNoise, camera_mount_pose
 from palletpilot.sim.faults import FaultSpec
@@ -111,23 +114,74 @@ class NoiseSpec(_Strict):
 
 
 class PalletPlacement(_Strict):
-    """A pallet at a roadmap pallet node, misplaced by (dx, dy, dyaw) in the node's frame."""
+    """A pallet at a roadmap pallet node, misplaced by (dx, dy, dyaw) in the node's frame; or standing
+    free on the floor at (x, y, yaw_deg): its pallet frame (the entry face's centre) in the world."""
 
-    node: str
+    node: str | None = None
     dx: float = 0.0
     dy: float = 0.0
     dyaw_deg: float = 0.0
+    x: float | None = None
+    y: float | None = None
+    yaw_deg: float = 0.0
     loaded: bool = False
+
+    @model_validator(mode="after")
+    def _one_place(self) -> PalletPlacement:
+        free = self.x is not None or self.y is not None
+        if (self.node is None) == (not free):
+            raise ValueError("give either node (with dx, dy, dyaw_deg) or x and y (with yaw_deg)")
+        if free and (self.x is None or self.y is None):
+            raise ValueError("a free-standing pallet needs both x and y")
+        if free and {"dx", "dy", "dyaw_deg"} & self.model_fields_set:
+            raise ValueError("dx, dy, dyaw_deg: only with node")
+        return self
 
 
 class ClutterSpec(_Strict):
-    """Something else on the floor: a person or a box (other-object)."""
+    """Something else on the floor: a person or a box (other-object). A person with a `path` walks from
+    (x, y) through its points (world, m) at `speed` (m/s), facing the way it walks, then stands at the
+    end; with `repeat` it walks back and forth for ever."""
 
     kind: Literal["person", "box"]
     x: float
     y: float
     yaw_deg: float = 0.0
     size: tuple[float, float, float] = (0.6, 0.4, 0.5)
+    path: list[tuple[float, float]] = []
+    speed: float = Field(1.0, gt=0.0, allow_inf_nan=False)
+    repeat: bool = False
+
+    @model_validator(mode="after")
+    def _walkers_are_people(self) -> ClutterSpec:
+        if self.path and self.kind != "person":
+            raise ValueError("path: only people walk")
+        return self
+
+    def pose_at(self, t: float) -> tuple[float, float, float]:
+        """(x, y, yaw in rad) in the world at simulated time `t` (s)."""
+        points = [(self.x, self.y), *self.path]
+        if len(points) < 2:
+            return self.x, self.y, math.radians(self.yaw_deg)
+        lengths = [math.dist(a, b) for a, b in itertools.pairwise(points)]
+        total = sum(lengths)
+        travelled = self.speed * max(t, 0.0)
+        backwards = False
+        if total <= 0.0:
+            return self.x, self.y, math.radians(self.yaw_deg)
+        if self.repeat:
+            travelled %= 2.0 * total
+            if travelled > total:
+                travelled, backwards = 2.0 * total - travelled, True
+        else:
+            travelled = min(travelled, total)
+        for (a, b), length in zip(itertools.pairwise(points), lengths, strict=True):
+            if travelled <= length or (a, b) == (points[-2], points[-1]):
+                f = 0.0 if length == 0.0 else min(travelled / length, 1.0)
+                yaw = float(wrap_angle(math.atan2(b[1] - a[1], b[0] - a[0]) + (math.pi if backwards else 0.0)))
+                return a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), yaw
+            travelled -= length
+        return points[-1][0], points[-1][1], math.radians(self.yaw_deg)
 
 
 class Scenario(_Strict):

@@ -64,17 +64,20 @@ _BACKREST = ((-0.12, -0.40, 0.0), (0.0, 0.40, 1.2))  # load backrest box (m), fo
 class SimPallet:
     """A pallet in the simulated world (poses in the world frame)."""
 
-    node: str
+    node: str  # the pallet node it was placed at; "" for a pallet standing free on the floor
     T_world_pallet: SE3
     loaded: bool
     carried: bool = False
     T_forks_pallet: SE3 | None = field(default=None, repr=False)  # relative to the fork bottoms while carried
     lifted: bool = False  # the truck has lifted it at least once
     initial: SE3 | None = field(default=None, repr=False)  # where the scenario put it
+    id: str = ""  # its node, or `pallets[i]` (its index in the scenario) for a free one
 
     def __post_init__(self) -> None:
         if self.initial is None:
             self.initial = self.T_world_pallet
+        if not self.id:
+            self.id = self.node
 
 
 @dataclass(frozen=True)
@@ -132,13 +135,18 @@ class Simulator:
         self.collisions: list[dict[str, Any]] = []  # contacts: t_s, kind, id, part, message (the first stops all)
 
         self.pallets: list[SimPallet] = []
-        for placement in scenario.pallets:
+        for i, placement in enumerate(scenario.pallets):
+            if placement.node is None:  # free on the floor
+                assert placement.x is not None and placement.y is not None
+                T_world_pallet = SE2(placement.x, placement.y, math.radians(placement.yaw_deg)).to_se3()
+                self.pallets.append(SimPallet("", T_world_pallet, placement.loaded, id=f"pallets[{i}]"))
+                continue
             node = self.roadmap.node(placement.node)
             if node.type is not NodeType.PALLET:
                 raise SimError(f"{scenario.folder}: pallet placed at '{node.id}', a {node.type.value} node")
             misplacement = SE2(placement.dx, placement.dy, math.radians(placement.dyaw_deg)).to_se3()
             T_world_pallet = pallet_pose_at_node(node.pose, node.height) @ misplacement
-            self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded))
+            self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded, id=node.id))
         self._racks = self._build_racks()
         self._fixed_mesh = self._build_fixed_mesh()
         self._fixed_solids = self._build_fixed_solids()
@@ -177,9 +185,21 @@ class Simulator:
         parts += [wall_mesh(corners[k], corners[(k + 1) % 4]) for k in range(4)]
         parts += [r.rack.mesh(r.T_world_rack) for r in self._racks]
         for c in self.scenario.clutter:
+            if c.path:
+                continue  # walking: drawn where it is at each frame (`_walker_meshes`)
             pose = SE2(c.x, c.y, math.radians(c.yaw_deg))
             parts.append(person_mesh(pose) if c.kind == "person" else object_box_mesh(pose, c.size))
         return LabeledMesh.merge(parts)
+
+    def _walker_poses(self) -> list[tuple[int, SE2]]:
+        """The walking people (clutter index) and where they are now (world)."""
+        return [(i, SE2(*c.pose_at(self.time))) for i, c in enumerate(self.scenario.clutter) if c.path]
+
+    def _walker_meshes(self) -> list[LabeledMesh]:
+        return [person_mesh(pose) for _, pose in self._walker_poses()]
+
+    def _walker_solids(self) -> list[Solid]:
+        return [_person_solid(f"clutter[{i}]", pose) for i, pose in self._walker_poses()]
 
     def _build_fixed_solids(self) -> list[Solid]:
         """Walls, rack uprights and beams, people and boxes as solids for the contact test."""
@@ -197,8 +217,10 @@ class Simulator:
             solids += rack_solids(r.rack, r.T_world_rack.to_se2(), r.node)
         for i, c in enumerate(self.scenario.clutter):
             pose = SE2(c.x, c.y, math.radians(c.yaw_deg))
-            if c.kind == "person":  # legs, torso and arms of `world.person_mesh`
-                solids.append(box_solid("person", f"clutter[{i}]", pose, (-0.13, -0.31, 0.0), (0.13, 0.31, 1.75)))
+            if c.path:
+                continue  # walking: `_walker_solids`
+            if c.kind == "person":
+                solids.append(_person_solid(f"clutter[{i}]", pose))
             else:
                 sx, sy, sz = c.size
                 solids.append(
@@ -208,7 +230,8 @@ class Simulator:
 
     def obstacle_outlines(self) -> list[tuple[str, str, np.ndarray]]:
         """Racks, people and boxes for drawing: (kind, id, floor corners (4, 2) in the world frame, m)."""
-        return [(s.kind, s.id, solid_corners(s)) for s in self._fixed_solids if s.kind != "wall"]
+        solids = self._fixed_solids + self._walker_solids()
+        return [(s.kind, s.id, solid_corners(s)) for s in solids if s.kind != "wall"]
 
     def pallet_records(self) -> list[dict[str, Any]]:
         """Every pallet for the report: `id` (its node), `node`, `initial` and `final` true pose (`x_m`,
@@ -220,8 +243,8 @@ class Simulator:
 
         return [
             {
-                "id": p.node,
-                "node": p.node,
+                "id": p.id,
+                "node": p.node or None,
                 "initial": pose(p.initial if p.initial is not None else p.T_world_pallet),
                 "final": pose(p.T_world_pallet),
                 "loaded": p.loaded,
@@ -236,13 +259,11 @@ class Simulator:
         pt, pose = self.pallet_type, p.T_world_pallet.to_se2()
         z0 = float(p.T_world_pallet.t[2])
         load_kind = "load" if kind == "pallet" else "carried load"
-        solids = [
-            box_solid(kind, p.node, pose, (0.0, -0.5 * pt.width, z0), (pt.length, 0.5 * pt.width, z0 + pt.height))
-        ]
+        solids = [box_solid(kind, p.id, pose, (0.0, -0.5 * pt.width, z0), (pt.length, 0.5 * pt.width, z0 + pt.height))]
         if p.loaded:
             cx, cy, cz = CARGO_SIZE
             x0, top = 0.5 * (pt.length - cx), z0 + pt.height
-            solids.append(box_solid(load_kind, p.node, pose, (x0, -0.5 * cy, top), (x0 + cx, 0.5 * cy, top + cz)))
+            solids.append(box_solid(load_kind, p.id, pose, (x0, -0.5 * cy, top), (x0 + cx, 0.5 * cy, top + cz)))
         return solids
 
     def _truck_solids(self) -> tuple[list[Solid], list[Solid]]:
@@ -272,7 +293,8 @@ class Simulator:
         pallets = [s for p in standing for s in self._pallet_solids(p)]
         loads = [s for s in pallets if s.kind == "load"]
         # The forks meet pallets through their boards and blocks (`_contact`), loads and the rest here.
-        contact = first_contact(hull, self._fixed_solids + pallets) or first_contact(forks, self._fixed_solids + loads)
+        fixed = self._fixed_solids + self._walker_solids()
+        contact = first_contact(hull, fixed + pallets) or first_contact(forks, fixed + loads)
         if contact is not None:
             self._collide(contact.to_json(self.time))
 
@@ -368,6 +390,11 @@ class Simulator:
         direction = T.apply_vectors([1.0, 0.0, 0.0])
         rays = np.hstack([origins, np.tile(direction, (2, 1))]).astype(np.float32)
         t = self._beam_scene.cast_rays(o3d_tensor(rays))["t_hit"].numpy()
+        walkers = self._walker_meshes()
+        if walkers:  # people walking: a scene of where they are now
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(LabeledMesh.merge(walkers).to_open3d())
+            t = np.minimum(t, scene.cast_rays(o3d_tensor(rays))["t_hit"].numpy())
         ranges = [float(r) if r <= BEAM_MAX_RANGE_M else math.inf for r in t]
         return ranges[0], ranges[1]
 
@@ -382,6 +409,7 @@ class Simulator:
             self._renderer = RaycastRenderer(self._static_meshes())
         dynamic = [self._forks_local.transformed(self.T_world_forklift3 @ SE3.from_translation(0, 0, self.fork_height))]
         dynamic += [self._pallet_mesh(p) for p in self.pallets if p.carried]
+        dynamic += self._walker_meshes()
         truth = {"T_forklift_camera_true": self.T_forklift_camera_true.matrix}
         target = self.pallet_ahead()
         if target is not None:
@@ -469,9 +497,9 @@ class Simulator:
             hit = self._contact(p, T_wf)
             if hit is not None and not self.collisions:
                 part = hit.partition(" hit ")[0]
-                message = f"t={self.time:.2f} s: {hit} of the pallet at '{p.node}'"
+                message = f"t={self.time:.2f} s: {hit} of the pallet '{p.id}'"
                 self._collide(
-                    {"t_s": round(self.time, 3), "kind": "pallet", "id": p.node, "part": part, "message": message}
+                    {"t_s": round(self.time, 3), "kind": "pallet", "id": p.id, "part": part, "message": message}
                 )
         if changed:
             self._static_changed()
@@ -549,3 +577,8 @@ class Simulator:
         p.T_forks_pallet = lift @ planar
         p.carried = p.lifted = True
         return True
+
+
+def _person_solid(id_: str, pose: SE2) -> Solid:
+    """A standing person as a solid: legs, torso and arms of `world.person_mesh` (0.26 x 0.62 x 1.75 m)."""
+    return box_solid("person", id_, pose, (-0.13, -0.31, 0.0), (0.13, 0.31, 1.75))

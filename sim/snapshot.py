@@ -14,7 +14,7 @@ time                                     simulated time (s)
 forklift   pose {x, y, yaw}              T_world_forklift (m, rad)
            v, steering, fork_height      speed (m/s), steering angle (rad), fork height (m)
            speed_cmd, steering_cmd, fork_height_cmd, odometer (m)
-pallets    [{node, loaded, carried, T_world_pallet, T_forks_pallet, lifted, initial}]
+pallets    [{node, id, loaded, carried, T_world_pallet, T_forks_pallet, lifted, initial}]
            SE3 as {xyz: [m], quat_xyzw: [...]}; T_forks_pallet (relative to the fork bottoms) or null
 collisions                               the contacts recorded so far (t_s, kind, id, part, message)
 rng        {sim, forklift, localization, camera}: numpy bit-generator states
@@ -157,6 +157,7 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
         "pallets": [
             {
                 "node": p.node,
+                "id": p.id,
                 "loaded": bool(p.loaded),
                 "carried": bool(p.carried),
                 "T_world_pallet": se3_to_doc(p.T_world_pallet),
@@ -216,8 +217,8 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     decoded = []
     for k, (p, sim_p) in enumerate(zip(pallets, sim.pallets, strict=True)):
         what = f"pallets[{k}]"
-        if _field(p, "node", what) != sim_p.node:
-            raise _FieldError(f"{what}.node is {p['node']!r}, the scenario's is {sim_p.node!r}")
+        if _field(p, "node", what) != sim_p.node or _field(p, "id", what) != sim_p.id:
+            raise _FieldError(f"{what} is {p['id']!r} at {p['node']!r}, the scenario's is {sim_p.id!r}")
         loaded, carried, lifted = (_field(p, key, what) for key in ("loaded", "carried", "lifted"))
         if not all(isinstance(v, bool) for v in (loaded, carried, lifted)):
             raise _FieldError(f"{what}: loaded, carried and lifted must be true or false")

@@ -227,3 +227,57 @@ def test_nothing_touches_when_the_truck_passes_beside_or_above():
     turned_into = Solid("person", "p", SE2(0.4, 0.25, 1.0), (0.13, 0.31), (0.0, 1.75))  # on the fork's line
     contact = first_contact([fork], [beam_below, turned_into])
     assert contact is not None and contact.solid.id == "p" and contact.part == "left fork"
+
+
+def test_a_person_walking_into_the_standing_forks_is_a_contact_with_that_person():
+    # The truck stands at floor_b2_pre (22.5, 11.5) facing +x, fork tips at x = 23.65; a person walks
+    # across 0.4 m inside the tips, from y = 14 to y = 9 at 1 m/s.
+    walker = {"kind": "person", "x": 23.25, "y": 14.0, "path": [[23.25, 9.0]], "speed": 1.0}
+    sim = Simulator(clutter_scenario([{"kind": "box", "x": 30.0, "y": 30.0}, walker]))
+    for _ in range(200):
+        sim.step()
+    (hit,) = sim.collisions
+    assert (hit["kind"], hit["id"]) == ("person", "clutter[1]") and hit["part"] in ("left fork", "right fork")
+    assert 2.0 < hit["t_s"] < 2.5  # the arms reach the left fork's outer side at y = 11.5 + 0.26 + 0.31
+
+
+def test_a_walking_person_goes_back_and_forth_along_the_path():
+    sc = clutter_scenario([{"kind": "person", "x": 0.0, "y": 0.0, "path": [[4.0, 0.0], [4.0, 2.0]], "repeat": True}])
+    person = sc.clutter[0]
+    assert person.pose_at(0.0) == pytest.approx((0.0, 0.0, 0.0))
+    assert person.pose_at(5.0) == pytest.approx((4.0, 1.0, math.pi / 2))
+    assert person.pose_at(7.0)[:2] == pytest.approx((4.0, 1.0))  # on the way back (6 m out, 1 back)
+    assert person.pose_at(7.0)[2] == pytest.approx(-math.pi / 2)
+    assert person.pose_at(12.0)[:2] == pytest.approx((0.0, 0.0))
+    once = sc.clutter[0].model_copy(update={"repeat": False})
+    assert once.pose_at(100.0)[:2] == pytest.approx((4.0, 2.0))  # then stands at the end
+
+
+def test_a_free_standing_pallet_is_solid_and_reported_by_its_index():
+    sc = Scenario.model_validate(
+        {"map": "warehouse.yaml", "start": "floor_b2_pre", "pallets": [{"x": 20.5, "y": 11.5, "yaw_deg": 90}]}
+    )
+    sc.folder = MISSIONS
+    sim = Simulator(sc)
+    drive_straight(sim, -1.5)
+    (hit,) = sim.collisions
+    assert (hit["kind"], hit["id"], hit["part"]) == ("pallet", "pallets[0]", "body")
+    (record,) = sim.pallet_records()
+    assert record["id"] == "pallets[0]" and record["node"] is None and record["initial"]["x_m"] == 20.5
+
+
+@pytest.mark.parametrize(
+    ("entry", "problem"),
+    [
+        ("{node: floor_b2, x: 1.0, y: 2.0}", "either node"),
+        ("{x: 1.0}", "needs both x and y"),
+        ("{x: 1.0, y: 2.0, dx: 0.1}", "only with node"),
+    ],
+)
+def test_bad_pallet_placements_are_one_line(tmp_path, entry, problem):
+    path = tmp_path / "s.yaml"
+    path.write_text(f"map: {MISSIONS / 'warehouse.yaml'}\nstart: charger\npallets:\n  - {entry}\n")
+    with pytest.raises(SimError) as info:
+        load_scenario(path)
+    (line,) = info.value.problems
+    assert line.startswith(f"{path}: pallets[0]") and problem in line
