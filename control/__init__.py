@@ -1,7 +1,7 @@
 """Control: the forklift's kinematic model, vehicle limits, and the path followers.
 
 Public API:
-- `VehicleParams` (with `MastParams`, `BodyParams`), `load_vehicle(path)`: the vehicle file
+- `VehicleParams` (with `MastParams`, `BodyParams`, `BatteryParams`), `load_vehicle(path)`: the vehicle file
   (`missions/forklift.yaml`), shared with `sim/`.
 - `KinematicModel`: state (x, y, yaw, steering), inputs (speed, steering rate); CasADi and numpy.
 - Path followers (non-blocking, for the 20 Hz tick): `start(path)`, `update(t, T_world_forklift,
@@ -17,9 +17,10 @@ from palletpilot.control.follower import DriveCommand, Follower, FollowerConfig,
 from palletpilot.control.model import KinematicModel
 from palletpilot.control.mpc import MpcConfig, MpcFollower, MpcWeights
 from palletpilot.control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
-from palletpilot.control.vehicle import BodyParams, MastParams, VehicleParams, load_vehicle
+from palletpilot.control.vehicle import BatteryParams, BodyParams, MastParams, VehicleParams, load_vehicle
 
 __all__ = [
+    "BatteryParams",
     "BodyParams",
     "ControlError",
     "DriveCommand",

@@ -29,6 +29,17 @@ class MastParams(BaseModel):
     travel_height_loaded: float = Field(0.10, ge=0.0, description="fork bottoms while driving a load (m)")
 
 
+class BatteryParams(BaseModel):
+    """The traction battery, as a state of charge between 0 and 1: drained by driving and lifting,
+    charged at a charger. Levels are fractions of a full battery."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    drain_per_km: float = Field(0.05, ge=0.0, description="charge used per km driven")
+    drain_per_lift_m: float = Field(0.0005, ge=0.0, description="charge used per metre the forks rise")
+    charge_per_min: float = Field(0.01, gt=0.0, description="charge gained per minute at a charger")
+
+
 class BodyParams(BaseModel):
     """The truck's body as a box in the forklift frame (origin at the fork heels on the floor, x to the
     fork tips): from `rear_x` to `front_x` (m, behind the heels: negative), `width` (m) and `height` (m,
@@ -68,6 +79,7 @@ class VehicleParams(BaseModel):
     creep_speed: float = Field(0.3, gt=0.0, description="m/s, the fastest drive with the forks above travel height")
     mast: MastParams = MastParams()
     body: BodyParams = BodyParams()
+    battery: BatteryParams | None = None  # no battery model: `until_level` charging is not possible
 
     @model_validator(mode="after")
     def _mast_range(self) -> VehicleParams:

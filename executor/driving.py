@@ -146,10 +146,13 @@ class Charge(Behaviour):
         ctx.vehicle.stop()
         self.until = ctx.now() + 60.0 * (ctx.task.minutes or 0.0)
         self.timeout_s = 60.0 * (ctx.task.minutes or 240.0) + 10.0
-        if ctx.task.until_level is not None and not hasattr(ctx.vehicle, "battery_level"):
+        if ctx.task.until_level is not None and getattr(ctx.vehicle, "battery_level", None) is None:
             raise TaskFailed("no_battery_reading", "charging until a level needs a battery reading this vehicle lacks")
 
     def update(self, ctx: Context) -> str | None:
         if ctx.task.until_level is not None:
-            return "done" if ctx.vehicle.battery_level >= ctx.task.until_level else None  # type: ignore[attr-defined]
+            level = getattr(ctx.vehicle, "battery_level", None)
+            if level is None:
+                raise TaskFailed("no_battery_reading", "the battery reading was lost while charging")
+            return "done" if level >= ctx.task.until_level else None
         return "done" if ctx.now() >= self.until else None

@@ -139,6 +139,8 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
             if loaded_by is None:
                 problems.append(f"{label}): a delivery with empty forks: no pickup (or loaded_at_start) before it")
             loaded_by = None
+        if getattr(task, "until_level", None) is not None and vehicle.battery is None:
+            problems.append(f"{label}): until_level needs a battery model (`battery` in the vehicle file)")
         if node_id is None:
             continue
         label += f" {node_id})"

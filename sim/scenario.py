@@ -194,6 +194,7 @@ class Scenario(_Strict):
     start: str
     camera: CameraSpec = CameraSpec()
     noise: NoiseSpec = NoiseSpec()
+    battery_level: float = Field(0.8, ge=0.0, le=1.0)  # state of charge at the start (with a battery model)
     pallets: list[PalletPlacement] = []
     clutter: list[ClutterSpec] = []
     faults: list[FaultSpec] = []  # injected faults (sim.faults); none by default

@@ -132,6 +132,8 @@ class Simulator:
         self.camera = CameraModel.d435(scenario.camera.width, scenario.camera.height)
         self.T_forklift_camera_true = self._perturbed_mount()
         self.time = 0.0
+        self.battery_level: float | None = scenario.battery_level if self.vehicle.battery is not None else None
+        self._chargers = [n.pose for n in self.roadmap.nodes() if n.type is NodeType.CHARGING]
         self.collisions: list[dict[str, Any]] = []  # contacts: t_s, kind, id, part, message (the first stops all)
 
         self.pallets: list[SimPallet] = []
@@ -460,9 +462,11 @@ class Simulator:
 
     # -- time -----------------------------------------------------------------------------
     def step(self, dt: float = CONTROL_DT) -> None:
-        """Advance simulated time by `dt` (s): vehicle, mast, carried pallets, contacts."""
+        """Advance simulated time by `dt` (s): vehicle, mast, battery, carried pallets, contacts."""
+        height_before = self.fork_height
         self.forklift.step(dt)
         self.time += dt
+        self._update_battery(dt, max(self.fork_height - height_before, 0.0))
         self._update_pallets()
         self._check_contacts()
 
@@ -474,6 +478,18 @@ class Simulator:
         lo, hi = (np.array(v) for v in _BACKREST)
         boxes.append(("load backrest", lo + np.array([0.0, 0.0, h]), hi + np.array([0.0, 0.0, h])))
         return boxes
+
+    def _update_battery(self, dt: float, rise_m: float) -> None:
+        """Drain by distance and lifting; charge while standing within 0.3 m of a charging node."""
+        battery = self.vehicle.battery
+        if battery is None or self.battery_level is None:
+            return
+        level = self.battery_level - abs(self.speed) * dt * battery.drain_per_km / 1000.0
+        level -= rise_m * battery.drain_per_lift_m
+        here = self.true_pose
+        if abs(self.speed) < 1e-3 and any(here.distance_to(c) < 0.3 for c in self._chargers):
+            level += battery.charge_per_min * dt / 60.0
+        self.battery_level = min(max(level, 0.0), 1.0)
 
     def _update_pallets(self) -> None:
         T_wf = self.T_world_forklift3

@@ -11,6 +11,7 @@ Layout (version `SNAPSHOT_VERSION`; poses in the world frame, SI units):
 format, version                          "palletpilot-sim-snapshot", 1
 seed, map, pallet_nodes                  the run's identity; pallet_nodes must match the scenario
 time                                     simulated time (s)
+battery_level                            state of charge 0..1 (null without a battery model)
 forklift   pose {x, y, yaw}              T_world_forklift (m, rad)
            v, steering, fork_height      speed (m/s), steering angle (rad), fork height (m)
            speed_cmd, steering_cmd, fork_height_cmd, odometer (m)
@@ -143,6 +144,7 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
         "map": str(sim.scenario.map),
         "pallet_nodes": [p.node for p in sim.pallets],
         "time": float(sim.time),
+        "battery_level": sim.battery_level,
         "forklift": {
             "pose": se2_to_doc(st.pose),
             "v": float(st.v),
@@ -203,6 +205,9 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise _FieldError(f"seed must be an integer, got {seed!r}")
     time = _float(_field(doc, "time", "snapshot"), "time")
+    battery = _field(doc, "battery_level", "snapshot")
+    if battery is not None and (not isinstance(battery, int | float) or not 0.0 <= battery <= 1.0):
+        raise _FieldError("battery_level must be null or a number in 0..1")
     f = _field(doc, "forklift", "snapshot")
     forklift: dict[str, Any] = {"pose": se2_from_doc(_field(f, "pose", "forklift"), "forklift.pose")}
     for key in ("v", "steering", "fork_height", "speed_cmd", "steering_cmd", "fork_height_cmd", "odometer"):
@@ -246,6 +251,7 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     return {
         "seed": seed,
         "time": time,
+        "battery_level": None if battery is None else float(battery),
         "forklift": forklift,
         "pallets": decoded,
         "collisions": list(collisions),
@@ -257,6 +263,7 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
 def _apply(sim: Simulator, state: dict[str, Any]) -> None:
     sim.seed = state["seed"]
     sim.time = state["time"]
+    sim.battery_level = state["battery_level"]
     f, fl = state["forklift"], sim.forklift
     fl.state.pose, fl.state.v, fl.state.steering, fl.state.fork_height = (
         f["pose"],

@@ -330,3 +330,35 @@ def test_a_delivery_whose_forks_feel_no_load_never_moves(tmp_path):
     result = r.runner.results[0]
     assert not r.success and result.reason == "no_load" and "load sensor" in (result.message or "")
     assert r.sim.forklift.odometer < 1e-6
+
+
+def test_charging_until_a_level_uses_the_simulated_battery(tmp_path):
+    sc = scenario("charger", []).model_copy(update={"battery_level": 0.80})
+    sc.folder = MISSIONS
+    r = run(tmp_path, [{"type": "charge", "node": "charger", "until_level": 0.85}], sc)
+    assert r.success, r.runner.results[0].message
+    assert r.sim.battery_level is not None and r.sim.battery_level >= 0.85
+    rate = r.sim.vehicle.battery.charge_per_min
+    assert r.sim.time == pytest.approx(60.0 * 0.05 / rate, rel=0.05)  # 5 % at the vehicle file's rate
+
+
+def test_driving_and_lifting_drain_the_battery(tmp_path):
+    sc = scenario("b1", [{"node": "floor_b2"}]).model_copy(update={"battery_level": 0.5})
+    sc.folder = MISSIONS
+    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
+    assert r.success
+    battery = r.sim.vehicle.battery
+    floor = 0.5 - r.sim.forklift.odometer / 1000.0 * battery.drain_per_km
+    assert r.sim.battery_level < floor + 1e-9  # distance drained it, lifting a little more
+
+
+def test_until_level_needs_a_battery_model(tmp_path):
+    from palletpilot.executor.mission import load_mission, validate_mission
+    from palletpilot.roadmap import load_map
+
+    path = mission_file(tmp_path, [{"type": "charge", "node": "charger", "until_level": 0.9}])
+    mission = load_mission(path)
+    vehicle = load_vehicle(MISSIONS / "forklift.yaml").model_copy(update={"battery": None})
+    with pytest.raises(MissionError) as info:
+        validate_mission(mission, load_map(mission.map_path), vehicle, "charger", str(path))
+    assert "until_level needs a battery model" in info.value.problems[0]

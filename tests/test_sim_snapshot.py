@@ -216,9 +216,10 @@ def test_restore_refuses_other_versions_and_other_pallets():
 # Everything a Simulator holds, as built. New state must be added to the snapshot (`sim/snapshot.py`)
 # when it evolves while the simulator runs, or to the fixed part here when it is set at construction.
 SNAPSHOT_ATTRIBUTES = {"seed", "rng", "forklift", "_loc_rng", "_cam_rng", "T_forklift_camera_true", "time"}
-SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets"}
+SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets", "battery_level"}
 FIXED_ATTRIBUTES = {"scenario", "roadmap", "vehicle", "forks", "pallet_type", "_pallet_parts", "_part_lo", "_part_hi"}
 FIXED_ATTRIBUTES |= {"localization_noise", "camera", "_racks", "_fixed_mesh", "_forks_local", "_fixed_solids"}
+FIXED_ATTRIBUTES |= {"_chargers"}
 CACHE_ATTRIBUTES = {"_renderer", "_beam_scene"}  # dropped by restore (`_static_changed`)
 
 
