@@ -3,9 +3,14 @@
 - `sim.simulator`: `Simulator(scenario, seed, start)`, what the executor drives: `localization()`,
   `drive(speed, steering)`, `stop()`, `set_fork_height(h)`, `fork_height`, `proximity_ranges()`,
   `grab() -> FrameBundle`, `step(dt)`; truth for tests: `true_pose`, `pallets`, `collisions`,
-  `T_forklift_camera_true`. Pickup physics: forks and backrest against the pallet's boards and blocks.
+  `T_forklift_camera_true`, `battery_level`, `pallet_records()`, `obstacle_outlines()`; `snapshot()`,
+  `restore(doc)`. Pickup physics: forks and backrest against the pallet's boards and blocks.
+- `sim.contacts`: everything else is solid (`Solid`, `first_contact`, `rack_solids`): the truck's
+  body, forks and carried load against walls, racks, people (standing or walking), boxes, pallets, loads.
 - `sim.scenario`: scenario files (`load_scenario`, `Scenario`, `SimError`): map, start node, pallets
-  and their misplacement, clutter, camera mount and its perturbation, camera and vehicle noise, seed.
+  (at nodes with their misplacement, or free on the floor), clutter (people may walk a path), the
+  battery's start level, camera mount and its perturbation, camera and vehicle noise, seed, `faults`.
+- `sim.faults`: injected faults (`FaultSpec`, `FaultInjector`); `sim.snapshot`: the exact state as JSON.
 - `sim.forklift`: `SimForklift` (kinematic tricycle, actuator lag, slip, rate-limited mast),
   `LocalizationNoise`.
 

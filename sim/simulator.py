@@ -179,9 +179,13 @@ class Simulator:
                 racks.append(RackSupport(T_world_rack, rack, node.height, node.id))
         return racks
 
-    def _build_fixed_mesh(self) -> LabeledMesh:
+    def _floor_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The warehouse floor's (x, y) corners (m): the map's nodes with 6 m to spare, walls around."""
         xy = np.array([n.pose.xy for n in self.roadmap.nodes()])
-        lo, hi = xy.min(axis=0) - 6.0, xy.max(axis=0) + 6.0
+        return xy.min(axis=0) - 6.0, xy.max(axis=0) + 6.0
+
+    def _build_fixed_mesh(self) -> LabeledMesh:
+        lo, hi = self._floor_bounds()
         corners = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])]
         parts = [floor_mesh(lo[0], lo[1], hi[0], hi[1])]
         parts += [wall_mesh(corners[k], corners[(k + 1) % 4]) for k in range(4)]
@@ -204,9 +208,8 @@ class Simulator:
         return [_person_solid(f"clutter[{i}]", pose) for i, pose in self._walker_poses()]
 
     def _build_fixed_solids(self) -> list[Solid]:
-        """Walls, rack uprights and beams, people and boxes as solids for the contact test."""
-        xy = np.array([n.pose.xy for n in self.roadmap.nodes()])
-        lo, hi = xy.min(axis=0) - 6.0, xy.max(axis=0) + 6.0
+        """Walls, rack uprights and beams, standing people and boxes as solids for the contact test."""
+        lo, hi = self._floor_bounds()
         t = 0.1  # half the wall thickness
         origin = SE2(0.0, 0.0, 0.0)
         solids = [
