@@ -59,6 +59,31 @@ class BodyParams(BaseModel):
         return self
 
 
+class SafetyScannerParams(BaseModel):
+    """2D safety laser scanners as ISO 3691-4 trucks carry them (`control.safety` draws the fields).
+
+    The protective field reaches the stopping distance at the current speed plus `protective_margin`
+    ahead of the truck's leading end (fork tips or load when travelling forward, the counterweight in
+    reverse); the warning field reaches `warning_extra` further. A warning intrusion caps the speed at
+    `warning_speed`; a protective intrusion brakes the truck at `emergency_decel` (the truck's own safety
+    function, not the executor's), and it drives on only after the fields at `warning_speed` stayed clear
+    for `restart_delay_s`. The `narrow` field set, for entering a pallet or a drop slot on the floor,
+    mutes the corridor `mute_half_width` either side of the forks' centre line and watches only the
+    body's front corners beside it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scan_height: float = Field(0.10, gt=0.0, description="scan plane above the floor (m)")
+    response_time_s: float = Field(0.20, ge=0.0, description="scanner and safety PLC reaction time (s)")
+    protective_margin: float = Field(0.20, ge=0.0, description="protective field beyond the stopping distance (m)")
+    warning_extra: float = Field(1.50, ge=0.0, description="warning field beyond the protective field (m)")
+    warning_speed: float = Field(0.30, gt=0.0, description="speed cap while the warning field is intruded (m/s)")
+    lateral_margin: float = Field(0.10, ge=0.0, description="fields beyond the body's sides (m)")
+    restart_delay_s: float = Field(1.0, ge=0.0, description="clear fields this long before driving on (s)")
+    mute_half_width: float = Field(0.45, gt=0.0, description="narrow set: muted corridor either side of the forks (m)")
+    narrow_margin: float = Field(0.05, ge=0.0, description="narrow set: side fields beyond the stopping distance (m)")
+
+
 class VehicleParams(BaseModel):
     """Kinematic and actuator limits of the forklift (SI units unless the name says otherwise)."""
 
@@ -80,6 +105,7 @@ class VehicleParams(BaseModel):
     mast: MastParams = MastParams()
     body: BodyParams = BodyParams()
     battery: BatteryParams | None = None  # no battery model: `until_level` charging is not possible
+    safety_scanner: SafetyScannerParams | None = SafetyScannerParams()  # null: a truck without scanners
 
     @model_validator(mode="after")
     def _mast_range(self) -> VehicleParams:
@@ -89,6 +115,9 @@ class VehicleParams(BaseModel):
         for name in ("travel_height_empty", "travel_height_loaded"):
             if not m.min_height <= getattr(m, name) <= m.max_height:
                 raise ValueError(f"mast.{name} must lie within min_height..max_height")
+        scanner = self.safety_scanner
+        if scanner is not None and scanner.mute_half_width >= 0.5 * self.body.width:
+            raise ValueError("safety_scanner.mute_half_width must be less than half the body width")
         if self.emergency_decel < self.max_decel:
             raise ValueError("emergency_decel must be at least max_decel")
         return self

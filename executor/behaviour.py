@@ -31,7 +31,8 @@ class TemporaryNodes:
     """Temporary pallet and pre-pallet nodes of a re-plan (world frame, m and rad), joined to `before`.
 
     `heading` is the forklift's yaw at `before` when the curve was made; the same record rebuilds the
-    same nodes and curves on a resume.
+    same nodes and curves on a resume. `via`: the roadmap nodes the truck backs along to reach `before`,
+    from the node it backed off to (first) to `before` (last); empty means `before` alone.
     """
 
     k: int
@@ -41,6 +42,12 @@ class TemporaryNodes:
     pre_pose: SE2
     before: str
     heading: float
+    via: tuple[str, ...] = ()
+
+    @property
+    def back_path(self) -> tuple[str, ...]:
+        """The nodes from where the truck backed off to `before`, both included (`(before,)` at least)."""
+        return self.via or (self.before,)
 
     def to_json(self) -> dict[str, Any]:
         """Plain JSON (poses as [x, y, yaw])."""
@@ -53,6 +60,7 @@ class TemporaryNodes:
             "pre_pose": [q.x, q.y, q.yaw],
             "before": self.before,
             "heading": self.heading,
+            "via": list(self.via),
         }
 
     @classmethod
@@ -66,6 +74,7 @@ class TemporaryNodes:
             SE2(*map(float, doc["pre_pose"])),
             str(doc["before"]),
             float(doc["heading"]),
+            tuple(str(n) for n in doc.get("via", ())),
         )
 
 
@@ -83,6 +92,11 @@ class Settings:
     calibration_retries: int = 1
     frames_per_estimate: int = 3  # the pallet stands still: averaging frames (and localization fixes) cuts noise
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least
+    # Re-plan: when no drivable curve joins the node the truck backed off to and the new pre-pallet node,
+    # try nodes further back along the route that reached the pre-pallet node: this many nodes in all.
+    replan_back_nodes: int = 3
+    # After a failed task, leave for the nearest parking node (the mission's `return_on_failure` decides;
+    # this is the default when the mission says nothing).
     return_on_failure: bool = False
     adapt: bool = True
     # The mission's pallet stands within this envelope of its node (m, m, deg); an estimate outside it is
@@ -95,6 +109,9 @@ class Settings:
     # At a rack node (height > 0) the truck's heels go at most this far past the node along its heading:
     # further, the mast meets the rack's front beam. A pallet standing deeper is entered only this far.
     rack_overrun: float = 0.10
+    # A protective stop of the safety scanners, or something in the entry volume, holds the task this long
+    # (s) before it fails with `path_blocked` (an occupied drop slot: `slot_occupied`).
+    blocked_wait_s: float = 30.0
     # Simulated clocks only: how long perception takes in simulated time (s), per call / per frame.
     calibration_latency_s: float = 0.3
     estimate_latency_s: float = 0.1
@@ -129,6 +146,9 @@ class Context:
     pre_node: str = ""
     node_before: str | None = None
     last_route: Route | None = None
+    # The nodes of the route that reached the task's own pre-pallet node (ending there): re-plans back
+    # along it (journalled).
+    route_to_pre: list[str] = field(default_factory=list)
     attempts: int = 0
     calibration: Calibration | None = None
     estimate: PalletEstimate | None = None

@@ -1,7 +1,7 @@
 """Behaviours that move the truck: follow a route, set the fork height, wait, charge.
 
-Public API: `FollowRoute` (creeps while the forks are above travel height), `SetForks`, `Wait`,
-`ReturnToRoadmap`, `Charge`, `travel_height`.
+Public API: `FollowRoute` (creeps while the forks are above travel height; selects the safety
+scanners' field set, `field_set_for`), `SetForks`, `Wait`, `ReturnToRoadmap`, `Charge`, `travel_height`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.executor.behaviour import Behaviour, Context
 from palletpilot.executor.errors import CONTROLLER_ERROR, NO_ROUTE, TaskFailed
-from palletpilot.roadmap import RoadmapError, reference_path
+from palletpilot.roadmap import Direction, NodeType, RoadmapError, reference_path
 from palletpilot.roadmap.planner import Route
 
 TRAVEL_HEIGHT_TOLERANCE = 0.05
@@ -25,8 +25,26 @@ def travel_height(ctx: Context) -> float:
     return mast.travel_height_loaded if ctx.vehicle.load_detected() else mast.travel_height_empty
 
 
+def field_set_for(ctx: Context, route: Route) -> str:
+    """The safety scanners' field set for a route: `narrow` when it enters a pallet or drop node forwards
+    whose load stands in the scan plane (on the floor), else `normal` (a rack's pallet is above the plane,
+    and the normal field keeps watching the floor in front of and under the rack)."""
+    scanner = ctx.params.safety_scanner
+    if scanner is None or not route.edges:
+        return "normal"
+    last = ctx.roadmap.node(route.nodes[-1])
+    entering = last.type in (NodeType.PALLET, NodeType.DROP) and route.edges[-1].direction is Direction.FORWARD
+    return "narrow" if entering and last.height < scanner.scan_height else "normal"
+
+
 class FollowRoute(Behaviour):
-    """Plan (or take) a route and follow it with the path follower until the forklift stands at its end."""
+    """Plan (or take) a route and follow it with the path follower until the forklift stands at its end.
+
+    `drives`: the runner holds this state (task time stands still) while the safety scanners' protective
+    stop holds the truck, and fails it with `path_blocked` after `Settings.blocked_wait_s`.
+    """
+
+    drives = True
 
     def __init__(
         self,
@@ -49,6 +67,8 @@ class FollowRoute(Behaviour):
             raise TaskFailed(NO_ROUTE, str(exc)) from None
         if not self.route.edges:
             return
+        field_set = field_set_for(ctx, self.route)
+        ctx.vehicle.set_safety_field_set(field_set)
         raised = ctx.vehicle.fork_height > travel_height(ctx) + TRAVEL_HEIGHT_TOLERANCE
         path = reference_path(self.route, speed_cap=ctx.params.creep_speed if raised else None)
         ctx.planned_paths.append(
@@ -56,7 +76,7 @@ class FollowRoute(Behaviour):
         )
         self.timeout_s = 30.0 + 4.0 * path.length / 0.5
         ctx.follower.start(path)
-        ctx.log("route", nodes=self.route.nodes, length_m=round(self.route.length, 3))
+        ctx.log("route", nodes=self.route.nodes, length_m=round(self.route.length, 3), safety_fields=field_set)
 
     def update(self, ctx: Context) -> str | None:
         assert self.route is not None

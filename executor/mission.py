@@ -3,10 +3,11 @@
 ```yaml
 name: pick up a misplaced pallet and deliver it
 map: warehouse.yaml               # relative to this file
+return_on_failure: true           # optional: after a failed task wait at the nearest parking node
 tasks:
   - {type: pickup, node: floor_b2}              # height (m): default the pallet node's height
   - {type: delivery, node: drop, height: 0.0}   # put the pallet down at a drop (or pallet) node
-  - {type: move, node: a_top}
+  - {type: move, node: a_top, return_on_failure: false}   # per task (pickup, delivery, move)
   - {type: charge, node: charger, minutes: 5}   # or until_level: 0.9 (needs a battery reading)
   - {type: wait, seconds: 10}
 ```
@@ -37,12 +38,18 @@ class _Task(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+_RETURN_ON_FAILURE = Field(
+    None, description="after this task fails, wait at the nearest parking node; default: the mission's"
+)
+
+
 class PickupTask(_Task):
     """Pick up the pallet at a pallet node (adapting to where it really is)."""
 
     type: Literal["pickup"]
     node: str
     height: float | None = Field(None, description="pallet height (m); default: the node's")
+    return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
 class DeliveryTask(_Task):
@@ -51,6 +58,7 @@ class DeliveryTask(_Task):
     type: Literal["delivery"]
     node: str
     height: float | None = Field(None, description="drop height (m); default: the node's")
+    return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
 class MoveTask(_Task):
@@ -58,6 +66,7 @@ class MoveTask(_Task):
 
     type: Literal["move"]
     node: str
+    return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
 class ChargeTask(_Task):
@@ -100,6 +109,11 @@ class Mission(BaseModel):
     map: str
     loaded_at_start: bool = False
     """The forks carry a load when the mission starts (default: empty)."""
+    return_on_failure: bool | None = None
+    """After a failed task (not a collision, sensor timeout, internal error, vehicle or localization fault
+    or a cancel: then the truck stays stopped), leave for the nearest parking node of the map and wait
+    there. A pickup, delivery or move task's own `return_on_failure` overrides it; None: the executor's
+    `Settings.return_on_failure` (off)."""
     tasks: list[Task] = Field(min_length=1)
     folder: Path = Field(Path("."), exclude=True)
 
@@ -107,6 +121,14 @@ class Mission(BaseModel):
     def map_path(self) -> Path:
         """The map file, resolved against the mission's folder."""
         return self.folder / self.map
+
+    def returns_on_failure(self, task: object, default: bool) -> bool:
+        """Whether a failed `task` sends the truck to a parking node: the task's own `return_on_failure`,
+        else the mission's, else `default` (the executor's setting)."""
+        own = getattr(task, "return_on_failure", None)
+        if own is not None:
+            return bool(own)
+        return default if self.return_on_failure is None else self.return_on_failure
 
 
 def load_mission(path: str | Path) -> Mission:

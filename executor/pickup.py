@@ -5,25 +5,29 @@ submits the work and polls for the result each tick, so its timeout fires and th
 commanded while perception runs. A result computed from a frame older than the vehicle's last motion
 (`ctx.last_motion_s`) is never used: the frame is grabbed again.
 
-Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`.
+Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`,
+`approach_curve`, `approach_route`, `nodes_back`.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
 from palletpilot.executor.behaviour import Behaviour, Context, TemporaryNodes
+from palletpilot.executor.entry import MIN_SEEN, RECHECK_S, entry_volume_at
 from palletpilot.executor.errors import (
     CALIBRATION_FAILED,
     NO_FEASIBLE_APPROACH,
     PALLET_NOT_FOUND,
+    PATH_BLOCKED,
     SAFETY_CHECK_FAILED,
     STILL_MISALIGNED,
     TaskFailed,
 )
 from palletpilot.executor.jobs import Job
-from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry import SE2, SE3, angle_diff
 from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
 from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
@@ -32,7 +36,8 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate, fuse_estimates
 from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
 from palletpilot.perception.view import pickup_view
-from palletpilot.roadmap import Direction, Edge, Node, NodeType, RoadmapError, connect
+from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
+from palletpilot.roadmap.graph import TANGENT_TOLERANCE_RAD
 
 STANDING_SPEED = 1e-3
 """m/s: below this the vehicle stands (frames for perception are taken only then)."""
@@ -133,6 +138,9 @@ class EstimatePallet(Behaviour):
         ctx.attempts += 1
         self.frames: list[tuple[FrameBundle, SE2, float]] = []
         self.job: Job[tuple[list[PalletEstimate], list[str]]] | None = None
+        self.blocked_since: float | None = None  # something stood in the entry volume since (task time, s)
+        self.look_at = 0.0  # task time (s) of the next look while blocked
+        self.timeout_s = EstimatePallet.timeout_s + ctx.settings.blocked_wait_s
 
     def update(self, ctx: Context) -> str | None:
         perception, calibration = ctx.perception, ctx.calibration
@@ -142,6 +150,8 @@ class EstimatePallet(Behaviour):
             if abs(ctx.vehicle.speed) > STANDING_SPEED:
                 ctx.vehicle.stop()
                 self.frames.clear()
+                return None
+            if ctx.now() < self.look_at:
                 return None
             frame = ctx.frame()
             if frame is not None:
@@ -172,8 +182,36 @@ class EstimatePallet(Behaviour):
             return None
         estimates, errors = job.result()
         if not estimates:
+            if self._blocked_in_front(ctx):
+                return None  # something stands before the pallet: look again later
             raise TaskFailed(PALLET_NOT_FOUND, errors[-1] if errors else "no pallet estimate")
         return self._judge(ctx, fuse_estimates(estimates))
+
+    def _blocked_in_front(self, ctx: Context) -> bool:
+        """No pallet seen: is a person or an object standing in the entry volume before the pallet node
+        (hiding it)? Then hold and look again every `RECHECK_S`; `path_blocked` after the wait."""
+        assert ctx.perception is not None and ctx.calibration is not None
+        node = ctx.roadmap.node(ctx.pallet_node)
+        spec = entry_volume_at(ctx, pallet_pose_at_node(node.pose, node.height).to_se2())
+        frame = self.frames[-1][0] if self.frames else None
+        self.frames.clear()
+        if spec is None or frame is None:
+            return False
+        look = ctx.perception.check_volume(frame, ctx.calibration, spec[0])
+        if not (look.occupied and look.seen >= MIN_SEEN):
+            return False
+        now = ctx.now()
+        if self.blocked_since is None:
+            self.blocked_since = now
+            ctx.log("entry_blocked", what="the pallet's entry volume", why="no pallet seen past it", **look.to_json())
+        if now - self.blocked_since >= ctx.settings.blocked_wait_s:
+            raise TaskFailed(
+                PATH_BLOCKED,
+                f"the pallet's entry volume is not free after {now - self.blocked_since:.0f} s: the camera sees "
+                f"{look.points} points of an object {look.nearest_x_m:.2f} m ahead, and no pallet past it",
+            )
+        self.look_at = now + RECHECK_S
+        return True
 
     def _judge(self, ctx: Context, est: PalletEstimate) -> str:
         assert est.T_world_pallet is not None
@@ -277,34 +315,113 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     return pallet_node_pose @ SE2(-back, 0.0, 0.0)
 
 
-def add_temporary_nodes(ctx: Context, spec: TemporaryNodes) -> None:
-    """Add a re-plan's temporary pallet and pre-pallet nodes and their edges to the task's overlay.
+def approach_curve(ctx: Context, spec: TemporaryNodes) -> Curve:
+    """The forward curve from `spec.before` (the truck heading `spec.heading` there) to the new pre-pallet
+    pose under the vehicle's curvature limit; `RoadmapError` says why there is none."""
+    before = ctx.roadmap.node(spec.before)
+    return connect(SE2(before.pose.x, before.pose.y, spec.heading), spec.pre_pose, ctx.params.max_curvature)
 
-    Raises `TaskFailed(no_feasible_approach)` when no drivable curve joins `spec.before` to the new
-    pre-pallet node. Used by `Replan` and, with the journalled record, by a resume.
+
+def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None = None) -> list[Edge]:
+    """Add a re-plan's temporary pallet and pre-pallet nodes and their edges to the task's overlay; the
+    edges added (the approach curve `spec.before` <-> new pre-pallet node, and the straight entry).
+
+    `curve`: the approach curve when the caller made it already (`approach_curve`). Raises
+    `TaskFailed(no_feasible_approach)` when no drivable curve joins `spec.before` to the new pre-pallet
+    node. Used by `Replan` and, with the journalled record, by a resume: the same record, the same graph.
     """
     assert ctx.overlay is not None
     original = ctx.roadmap.node(ctx.task.node)
     original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
-    before = ctx.roadmap.node(spec.before)
-    try:
-        curve = connect(SE2(before.pose.x, before.pose.y, spec.heading), spec.pre_pose, ctx.params.max_curvature)
-    except RoadmapError as exc:
-        raise TaskFailed(NO_FEASIBLE_APPROACH, f"no feasible approach to the estimated pallet: {exc}") from None
+    if curve is None:
+        try:
+            curve = approach_curve(ctx, spec)
+        except RoadmapError as exc:
+            raise TaskFailed(
+                NO_FEASIBLE_APPROACH, f"no feasible approach to the estimated pallet from '{spec.before}': {exc}"
+            ) from None
     ov = ctx.overlay
     ov.add_node(Node(spec.pre, NodeType.PRE_PALLET, spec.pre_pose))
     ov.add_node(Node(spec.pallet, NodeType.PALLET, spec.pallet_pose, height=original.height, pre_pallet=spec.pre))
     entry_speed = ctx.roadmap.edge(original_pre.id, original.id).speed_limit
-    ov.add_edge(Edge(before.id, spec.pre, curve, Direction.FORWARD, 0.5))
-    ov.add_edge(Edge(spec.pre, before.id, curve.reversed(), Direction.REVERSE, 0.5))
-    ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed))
-    ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed))
+    edges = [
+        ov.add_edge(Edge(spec.before, spec.pre, curve, Direction.FORWARD, 0.5)),
+        ov.add_edge(Edge(spec.pre, spec.before, curve.reversed(), Direction.REVERSE, 0.5)),
+        ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed)),
+        ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed)),
+    ]
     ctx.temporary.append(spec)
-    ctx.log("replanned", pallet=spec.pallet, pre_pallet=spec.pre, curve=curve.kind)
+    ctx.log(
+        "replanned",
+        pallet=spec.pallet,
+        pre_pallet=spec.pre,
+        curve=curve.kind,
+        joined_to=spec.before,
+        via=list(spec.back_path),
+    )
+    return edges
+
+
+def nodes_back(ctx: Context, start: str, heading: float, limit: int) -> list[tuple[str, float, tuple[str, ...]]]:
+    """Up to `limit` nodes to join a re-plan's new pre-pallet node to, nearest first: `start` (the node the
+    truck backed off to, where it heads `heading`, rad), then nodes further back. Each as (node, the truck's
+    heading there, the nodes it backs along from `start` to it, both included).
+
+    A step back from a node goes to the node before it on the route that reached the task's pre-pallet
+    node (`ctx.route_to_pre`), else to a roadmap predecessor joined to it both ways; always along an edge
+    driven in reverse that leaves with the truck's heading, never to a pallet, drop or temporary node.
+    """
+    path: tuple[str, ...] = (start,)
+    out = [(start, heading, path)]
+    if start not in ctx.roadmap:
+        return out
+    seen = {start, ctx.pre_node, ctx.task.node, ctx.roadmap.pre_pallet_of(ctx.task.node)}
+    here, yaw = start, heading
+    while len(out) < limit:
+        step = _step_back(ctx, here, yaw, seen)
+        if step is None:
+            break
+        here, yaw, path = step.end, step.yaw_end, (*path, step.end)
+        seen.add(here)
+        out.append((here, yaw, path))
+    return out
+
+
+def _step_back(ctx: Context, here: str, heading: float, seen: set[str]) -> Edge | None:
+    """The reverse edge from `here` one node further back (see `nodes_back`), or None."""
+    graph, route = ctx.roadmap.graph, ctx.route_to_pre
+    on_route = [route[i - 1] for i in range(1, len(route)) if route[i] == here]
+    for u in [*on_route, *(p for p in graph.predecessors(here) if p not in on_route)]:
+        if u in seen or u not in graph or not (graph.has_edge(here, u) and graph.has_edge(u, here)):
+            continue
+        node = ctx.roadmap.node(u)
+        if node.temporary or node.type in (NodeType.PALLET, NodeType.DROP):
+            continue
+        edge = ctx.roadmap.edge(here, u)
+        same_heading = abs(angle_diff(edge.yaw_start, heading)) <= 2 * TANGENT_TOLERANCE_RAD
+        if edge.direction is Direction.REVERSE and same_heading:
+            return edge
+    return None
+
+
+def approach_route(ctx: Context) -> Route:
+    """The approach to a re-plan's new pre-pallet node: from where the truck stands, back along the roadmap
+    to the node the new node is joined to (when that lies further back), then forward along the new curve."""
+    spec = ctx.temporary[-1] if ctx.temporary and ctx.temporary[-1].pre == ctx.pre_node else None
+    if spec is None:
+        nodes = [ctx.node_before or "", ctx.pre_node]
+    else:
+        path = spec.back_path
+        first = path.index(ctx.at_node) if ctx.at_node in path else 0
+        nodes = [*path[first:], spec.pre]
+    return Route(nodes, [ctx.roadmap.edge(a, b) for a, b in itertools.pairwise(nodes)])
 
 
 class Replan(Behaviour):
-    """Add temporary pallet and pre-pallet nodes from the estimate, joined to the node before by a curve."""
+    """Add temporary pallet and pre-pallet nodes from the estimate, joined by a drivable curve to the node
+    the truck backed off to or, when no curve fits from there, to a node further back along the route
+    (`nodes_back`, at most `Settings.replan_back_nodes` nodes tried); the approach then backs the truck
+    to that node first (`approach_route`), and the return to the roadmap leaves through it."""
 
     def update(self, ctx: Context) -> str | None:
         assert ctx.estimated_pallet is not None and ctx.overlay is not None
@@ -313,27 +430,53 @@ class Replan(Behaviour):
         standoff = original.pose.distance_to(original_pre.pose)
         new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.estimated_pallet))
         k = ctx.attempts
-        spec = TemporaryNodes(
-            k=k,
-            pallet=f"{ctx.task.node}~{k}",
-            pre=f"{original_pre.id}~{k}",
-            pallet_pose=new_pallet_pose,
-            pre_pose=new_pallet_pose @ SE2(-standoff, 0.0, 0.0),
-            before=ctx.node_before or "",
-            heading=ctx.heading,
+        limit = max(1, ctx.settings.replan_back_nodes)
+        failures: list[str] = []
+        for before, heading, path in nodes_back(ctx, ctx.node_before or "", ctx.heading, limit):
+            spec = TemporaryNodes(
+                k=k,
+                pallet=f"{ctx.task.node}~{k}",
+                pre=f"{original_pre.id}~{k}",
+                pallet_pose=new_pallet_pose,
+                pre_pose=new_pallet_pose @ SE2(-standoff, 0.0, 0.0),
+                before=before,
+                heading=heading,
+                via=path if len(path) > 1 else (),
+            )
+            try:
+                curve = approach_curve(ctx, spec)
+            except RoadmapError as exc:
+                failures.append(f"from '{before}': {exc}")
+                ctx.log("approach_infeasible", node=before, error=str(exc))
+                continue
+            self._add(ctx, spec, curve, tried=len(failures) + 1)
+            return "done"
+        n = len(failures)
+        raise TaskFailed(
+            NO_FEASIBLE_APPROACH,
+            f"no feasible approach to the estimated pallet: tried {n} node{'' if n == 1 else 's'} back along "
+            f"the route (at most {limit}): " + "; ".join(failures),
         )
-        add_temporary_nodes(ctx, spec)
-        ctx.pallet_node, ctx.pre_node = spec.pallet, spec.pre
+
+    @staticmethod
+    def _add(ctx: Context, spec: TemporaryNodes, curve: Curve, tried: int) -> None:
+        edges = add_temporary_nodes(ctx, spec, curve)
+        ctx.pallet_node, ctx.pre_node, ctx.node_before = spec.pallet, spec.pre, spec.before
+        pose = spec.pallet_pose
         ctx.record.setdefault("temporary_nodes", []).append(
             {
                 "pallet": spec.pallet,
                 "pre_pallet": spec.pre,
-                "x_m": round(new_pallet_pose.x, 4),
-                "y_m": round(new_pallet_pose.y, 4),
-                "yaw_deg": round(math.degrees(new_pallet_pose.yaw), 3),
+                "x_m": round(pose.x, 4),
+                "y_m": round(pose.y, 4),
+                "yaw_deg": round(math.degrees(pose.yaw), 3),
+                "joined_to": spec.before,
+                "nodes_tried": tried,
+                "backs_along": list(spec.back_path),
+                "curve": curve.kind,
+                "edges": [e.name for e in edges],
             }
         )
-        return "done"
 
 
 class SafetyCheck(Behaviour):

@@ -11,9 +11,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
+from palletpilot.control.safety import SafetyState
 from palletpilot.geometry import SE2
 from palletpilot.perception.calibration import Calibrator, Method
 from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.clearance import Volume, VolumeCheck, check_volume
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate, estimate_pallet
 from palletpilot.perception.segmentation import SegmentationService
@@ -64,6 +66,13 @@ class VehiclePort(Protocol):
     def faults(self) -> list[str]:
         """Active safety faults (contact, bumper); empty when all is well."""
 
+    def safety_state(self) -> SafetyState:
+        """The safety scanners: field set, warning (speed cap), protective stop, what intrudes."""
+
+    def set_safety_field_set(self, name: str) -> None:
+        """Select the scanners' field set (`control.safety.FIELD_SETS`): `normal`, or `narrow` to enter a
+        pallet or a floor drop slot once the camera has seen the entry volume clear."""
+
 
 class PerceptionService(Protocol):
     """Calibration and pallet estimation, in process or behind a service boundary."""
@@ -73,6 +82,9 @@ class PerceptionService(Protocol):
 
     def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
         """The pallet's pose (raises `PalletNotFound`)."""
+
+    def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
+        """Depth points inside an upright box ahead of the forks (forklift frame), and how much of it was seen."""
 
     @property
     def last_good(self) -> Calibration | None:
@@ -108,6 +120,10 @@ class LocalPerception:
     def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
         """Estimate the pallet's pose in the forklift and world frames."""
         return estimate_pallet(self._labelled(frame), calibration, self.pallet, T_world_forklift=T_world_forklift)
+
+    def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
+        """Depth points inside `volume` (forklift frame) and the share of it the camera saw."""
+        return check_volume(frame, calibration, volume)
 
     @property
     def last_good(self) -> Calibration | None:

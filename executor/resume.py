@@ -2,7 +2,8 @@
 
 The runner writes a checkpoint at the start of every state and after every finished task: where the
 mission stands (task index, state), the task context (node, heading, attempts, the calibration, the
-last pallet estimate, the temporary nodes of re-plans), whether the forks carry a load, the finished
+last pallet estimate, the route that reached the pre-pallet node, the temporary nodes of re-plans with
+the node their curve joins and the nodes backed along to it), whether the forks carry a load, the finished
 tasks' results, the trajectory and planned paths since the previous checkpoint, and, in the
 simulator, the whole world (`Simulator.snapshot`). Each is committed before the state starts acting.
 
@@ -81,6 +82,7 @@ class Checkpointer:
                 "pallet_node": ctx.pallet_node,
                 "pre_node": ctx.pre_node,
                 "node_before": ctx.node_before,
+                "route_to_pre": ctx.route_to_pre,
                 "calibration": None
                 if cal is None
                 else {"T": _se3_json(cal.T_forklift_camera), "method": cal.method, "quality": cal.quality},
@@ -180,6 +182,7 @@ class ResumePoint:
         ctx.attempts = int(saved["attempts"])
         ctx.pallet_node, ctx.pre_node = str(saved["pallet_node"]), str(saved["pre_node"])
         ctx.node_before = saved["node_before"]
+        ctx.route_to_pre = [str(n) for n in saved.get("route_to_pre", [])]
         cal = saved["calibration"]
         ctx.calibration = None if cal is None else Calibration(_se3(cal["T"]), str(cal["method"]), dict(cal["quality"]))  # type: ignore[arg-type]
         ctx.estimated_pallet = _se3(saved["estimated_pallet"])

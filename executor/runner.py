@@ -19,6 +19,7 @@ Public API: `Runner`, `TaskResult`, `SimClock`, `WallClock` (re-exported from `e
 from __future__ import annotations
 
 import contextlib
+import math
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
@@ -29,11 +30,13 @@ from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.behaviour import Behaviour, Context, Settings
 from palletpilot.executor.clock import Clock, SimClock, WallClock
 from palletpilot.executor.controls import Controls
+from palletpilot.executor.driving import FollowRoute, SetForks, travel_height
 from palletpilot.executor.errors import (
     CANCELLED,
     COLLISION,
     INTERNAL_ERROR,
     LOCALIZATION_FAULT,
+    PATH_BLOCKED,
     SENSOR_TIMEOUT,
     TIMEOUT,
     VEHICLE_FAULT,
@@ -47,11 +50,12 @@ from palletpilot.executor.results import TaskResult
 from palletpilot.executor.resume import Checkpointer, ResumePoint
 from palletpilot.executor.tasks import behaviours, build_machine
 from palletpilot.executor.watchdog import CommandedVehicle, WatchdogLimits, Watchdogs
+from palletpilot.geometry import angle_diff
 from palletpilot.geometry.fileio import dumps_json
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry, PalletType
-from palletpilot.roadmap import Planner, Roadmap
+from palletpilot.roadmap import NodeType, Planner, Roadmap, RoadmapError, Route
 
 __all__ = ["Runner", "SimClock", "TaskResult", "WallClock"]
 
@@ -60,7 +64,23 @@ STANDSTILL_SPEED = 1e-3
 QUICK_STOP_SPEED = 0.05
 """m/s: a failure above this uses the truck's safety stop, below it the service brake."""
 _PAUSED = "__paused__"
-_DRIVING_STATES = ("drive", "drive_to_pre_pallet", "drive_to_pre_drop", "approach", "enter", "reverse_out", "back_off")
+_RETURN_STATE = "return_on_failure"
+"""The name the drive to a parking node after a failure runs under (events, progress; no machine state)."""
+_DRIVING_STATES = (
+    "drive",
+    "drive_to_pre_pallet",
+    "drive_to_pre_drop",
+    "approach",
+    "enter",
+    "reverse_out",
+    "back_off",
+    _RETURN_STATE,
+)
+STAY_STOPPED = frozenset({COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR, VEHICLE_FAULT, LOCALIZATION_FAULT, CANCELLED})
+"""Failures after which the truck stays stopped where it is, whatever `return_on_failure` says."""
+PARK_POSE_TOLERANCE_M = 0.25
+PARK_YAW_TOLERANCE_DEG = 10.0
+"""After a failure the truck drives to a parking node only from a node it stands on within these."""
 
 
 class Runner:
@@ -103,6 +123,7 @@ class Runner:
         self._grab = grab
         self._paused_total = 0.0
         self._paused_since: float | None = None
+        self._blocked_since: float | None = None  # the scanners' protective stop holds the task since
         self._no_frame_since: float | None = None
         self._last_fork_height: float | None = None
         self.vehicle = CommandedVehicle(vehicle)
@@ -214,7 +235,7 @@ class Runner:
         resuming = start_state is not None and self.resume_point is not None
         if not resuming:
             ctx.task, ctx.attempts, ctx.calibration, ctx.estimate, ctx.estimated_pallet = task, 0, None, None, None
-            ctx.temporary = []
+            ctx.temporary, ctx.route_to_pre = [], []
             if node is not None and task.type in ("pickup", "delivery"):
                 ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
             self._log("task_start", index=index, type=task.type, node=node)
@@ -259,15 +280,11 @@ class Runner:
                 behaviour = None
                 if state == "drive_to_pre_pallet" and trigger == "done":
                     ctx.node_before = self._node_before()
+                    route = ctx.last_route
+                    ctx.route_to_pre = list(route.nodes) if route and route.nodes[-1] == ctx.pre_node else []
             self._stop_safely(result.reason or "task end")
-            if (
-                model.state == "failed"
-                and self.settings.return_on_failure
-                and ctx.pre_node
-                and not self.controls.cancelled
-                and result.reason not in (COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR, VEHICLE_FAULT, LOCALIZATION_FAULT)
-            ):
-                self._return_to_pre_pallet()
+            if model.state == "failed" and self.mission.returns_on_failure(task, self.settings.return_on_failure):
+                self._return_on_failure(result)  # inside the overlay: it may back out over temporary edges
         result.result = model.state
         result.attempts = ctx.attempts
         result.end_s = self.clock.now()
@@ -294,6 +311,8 @@ class Runner:
                     self.progress.note(f"[{self.clock.now():7.1f} s] paused in {state} (SIGUSR2 resumes)")
             vehicle.stop()
             return _PAUSED
+        if self._blocked(behaviour, state):
+            return _PAUSED
         if self._paused_since is not None:
             self._paused_total += self.clock.now() - self._paused_since
             self._paused_since = None
@@ -306,6 +325,38 @@ class Runner:
         if trigger is None and active > behaviour.timeout_s:
             raise TaskFailed(TIMEOUT, f"state '{state}' timed out after {behaviour.timeout_s:.0f} s")
         return trigger
+
+    def _blocked(self, behaviour: Behaviour, state: str) -> bool:
+        """Hold a driving state while the safety scanners' protective stop holds the truck (task time
+        stands still, as in a pause); `path_blocked` after `Settings.blocked_wait_s`."""
+        now = self.clock.now()
+        safety = self.vehicle.safety_state() if getattr(behaviour, "drives", False) else None
+        if safety is None or not safety.protective_stop:
+            if self._blocked_since is not None:
+                self._log("path_clear", state=state, waited_s=round(now - self._blocked_since, 2))
+                self._blocked_since = None
+            return False
+        if self._blocked_since is None:
+            self._blocked_since = now
+            if self._paused_since is None:
+                self._paused_since = now
+            self._log("path_blocked_hold", state=state, intrusions=list(safety.intrusions))
+            if self.progress is not None:
+                what = ", ".join(safety.intrusions) or "something"
+                self.progress.note(f"[{now:7.1f} s] path blocked by {what}: holding in {state}")
+        self.vehicle.stop()
+        waited = now - self._blocked_since
+        if waited > self.settings.blocked_wait_s:
+            self._blocked_since = None
+            if self._paused_since is not None:  # the hold ends with the task
+                self._paused_total += now - self._paused_since
+                self._paused_since = None
+            what = ", ".join(safety.intrusions) or "an object in the protective field"
+            raise TaskFailed(
+                PATH_BLOCKED,
+                f"the path stayed blocked by {what} for {waited:.0f} s (limit {self.settings.blocked_wait_s:.0f} s)",
+            )
+        return True
 
     def _fail(self, result: TaskResult | None, state: str | None, reason: str, message: str) -> str:
         if result is not None and result.reason is None:
@@ -422,26 +473,98 @@ class Runner:
             self.trajectory.append((now, pose.x, pose.y, pose.yaw))
         self._show(result, state)
 
-    def _return_to_pre_pallet(self) -> None:
-        """Optional after a failure: drive back to the pre-pallet node (best effort, logged)."""
-        ctx = self.ctx
-        from palletpilot.executor.driving import FollowRoute
+    # -- after a failure: to a parking node ------------------------------------------------------
+    def _return_on_failure(self, result: TaskResult) -> None:
+        """After a failed task whose `return_on_failure` holds: leave the slot, aisle or pallet approach and
+        wait at the nearest parking node by route length (the map's `parking_types`). Never raises.
 
-        if ctx.at_node == ctx.pre_node:
-            return
+        Logs `returning_on_failure` then `parked`, or `return_failed` with the reason the truck stays
+        stopped: the task failed with a reason in `STAY_STOPPED` (or was cancelled), the truck stands off
+        the roadmap (between nodes), no parking node can be reached, or the drive there failed (every tick
+        runs the task's checks: controls, watchdogs, faults, timeout). The task's record gets
+        `return_on_failure`: `parking_node`, `parked`, `route_length_m`, `reason`.
+        """
+        ctx = self.ctx
+        record: dict[str, Any] = {"parking_node": None, "parked": False, "route_length_m": None, "reason": None}
+        result.record["return_on_failure"] = record
+        why: str | None
         try:
-            behaviour = FollowRoute(lambda c: c.pre_node)
-            behaviour.start(ctx)
-            t_end = self.clock.now() + behaviour.timeout_s
-            while (
-                self.clock.now() < t_end
-                and not self.controls.cancelled
-                and behaviour.update(ctx) is None
-                and not self.vehicle.faults()
-            ):
-                self.clock.tick()
-            behaviour.stop(ctx)
-            self._log("returned_to_pre_pallet", node=ctx.at_node)
+            why = self._park(result, record)
+        except TaskFailed as exc:
+            why = f"{exc.reason}: {exc}"
+            self.stops.append({"t_s": round(self.clock.now(), 3), "reason": exc.reason, "speed": self._speed()})
         except Exception as exc:
-            self._log("return_failed", error=str(exc))
-        self._stop_safely("return to the pre-pallet node")
+            why = f"{INTERNAL_ERROR}: {type(exc).__name__}: {exc}"
+            with contextlib.suppress(Exception):
+                self._log("internal_error", state=_RETURN_STATE, traceback=traceback.format_exc(limit=8))
+        self._stop_safely("return on failure")
+        with contextlib.suppress(Exception):
+            if why is None:
+                record["parked"] = True
+                self._log("parked", task=result.index, node=ctx.at_node)
+            else:
+                record["reason"] = why
+                self._log("return_failed", task=result.index, node=ctx.at_node, reason=why)
+
+    def _park(self, result: TaskResult, record: dict[str, Any]) -> str | None:
+        """Drive to the nearest parking node (see `_return_on_failure`); None when there, else why the truck
+        stays where it is. A failure while moving raises `TaskFailed`."""
+        ctx = self.ctx
+        if result.reason in STAY_STOPPED or self.controls.cancelled:
+            return f"the task failed with {result.reason or CANCELLED}: the truck stays stopped"
+        here = ctx.roadmap.node(ctx.at_node)
+        pose = self.vehicle.localization()
+        off_m = math.hypot(pose.x - here.pose.x, pose.y - here.pose.y)
+        off_deg = abs(math.degrees(angle_diff(pose.yaw, ctx.heading)))
+        if off_m > PARK_POSE_TOLERANCE_M or off_deg > PARK_YAW_TOLERANCE_DEG:
+            return (
+                f"the truck stands {off_m:.2f} m and {off_deg:.0f} deg off node '{here.id}', the last it reached "
+                f"(limits {PARK_POSE_TOLERANCE_M} m, {PARK_YAW_TOLERANCE_DEG:.0f} deg): off the roadmap, it stays"
+            )
+        if here.type in (NodeType.PALLET, NodeType.DROP) and here.pre_pallet:
+            out = Route([here.id, here.pre_pallet], [ctx.roadmap.edge(here.id, here.pre_pallet)])
+            self._drive(result, FollowRoute(lambda c: out.nodes[-1], via=lambda c: out))  # forks where they are
+        self._drive(result, SetForks(travel_height))  # out of the slot: forks down to travel height
+        parking = ctx.roadmap.parking_nodes()
+        types = ", ".join(sorted(t.value for t in ctx.roadmap.parking_types))
+        if not parking:
+            return f"the map has no node of a parking type ({types})"
+        best: Route | None = None
+        for node in parking:  # the planner honours the heading; temporary edges lead out of a re-plan
+            with contextlib.suppress(RoadmapError):
+                route = ctx.planner.plan(ctx.at_node, node.id, start_yaw=ctx.heading)
+                if best is None or route.length < best.length:
+                    best = route
+        if best is None:
+            names = ", ".join(f"'{n.id}'" for n in parking)
+            return f"no parking node ({types}: {names}) can be reached from '{ctx.at_node}'"
+        goal, chosen = best.nodes[-1], best
+        record["parking_node"], record["route_length_m"] = goal, round(best.length, 3)
+        self._log(
+            "returning_on_failure",
+            task=result.index,
+            failed=result.reason,
+            from_node=ctx.at_node,
+            node=goal,
+            route=best.nodes,
+            length_m=round(best.length, 3),
+        )
+        self._drive(result, FollowRoute(lambda c: goal, via=lambda c: chosen))
+        return None
+
+    def _drive(self, result: TaskResult, behaviour: Behaviour) -> None:
+        """Run one behaviour to its end outside the task's machine, tick by tick with the task's checks
+        (`_tick`: controls, watchdogs, faults, pause, timeout); a failure raises `TaskFailed`."""
+        behaviour.start(self.ctx)
+        active = 0.0
+        try:
+            while True:
+                trigger = self._tick(behaviour, _RETURN_STATE, active)
+                if trigger is not None and trigger != _PAUSED:
+                    return
+                self._record_tick(result, _RETURN_STATE)
+                self.clock.tick()
+                if trigger is None:
+                    active += self.clock.dt
+        finally:
+            self._leave(behaviour, "done")

@@ -8,10 +8,12 @@ vehicle.
 
 The adaptive Pickup follows ARCHITECTURE.md: drive to the pre-pallet node, calibrate, raise the forks,
 estimate the pallet; when misaligned, lower the forks, back off to the node before the pre-pallet
-node, add temporary pallet and pre-pallet nodes from the estimate joined by a feasible curve, approach
-the new pre-pallet node and repeat (at most `max_attempts` estimates); then the proximity safety
-check, enter, lift, reverse out, return to the roadmap and remove the temporary nodes. `--no-adapt`
-runs the paper's original Pickup: no camera, only the safety check.
+node, add temporary pallet and pre-pallet nodes from the estimate joined by a feasible curve (to that
+node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`), approach
+the new pre-pallet node (backing to the further node first) and repeat (at most `max_attempts`
+estimates); then the proximity safety check, enter, lift, reverse out, return to the roadmap (through
+the node the temporary nodes are joined to) and remove the temporary nodes. `--no-adapt` runs the
+paper's original Pickup: no camera, only the safety check.
 
 Public API: `TASK_SPECS`, `TaskSpec`, `build_machine`, `mermaid`, `behaviours`, and re-exported for
 callers: `Settings`, `Context`, `Behaviour`, `TaskFailed` and the reason codes.
@@ -25,6 +27,7 @@ from typing import Any
 
 from palletpilot.executor.behaviour import Behaviour, Context, Settings, TemporaryNodes
 from palletpilot.executor.driving import Charge, FollowRoute, ReturnToRoadmap, SetForks, Wait, travel_height
+from palletpilot.executor.entry import CheckVolume, entry_volume, slot_volume
 from palletpilot.executor.errors import (
     CALIBRATION_FAILED,
     CANCELLED,
@@ -36,14 +39,16 @@ from palletpilot.executor.errors import (
     NO_ROUTE,
     PALLET_NOT_FOUND,
     PALLET_NOT_LIFTED,
+    PATH_BLOCKED,
     SAFETY_CHECK_FAILED,
     SENSOR_TIMEOUT,
+    SLOT_OCCUPIED,
     STILL_MISALIGNED,
     TIMEOUT,
     VEHICLE_FAULT,
     TaskFailed,
 )
-from palletpilot.executor.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck
+from palletpilot.executor.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck, approach_route
 from palletpilot.roadmap.planner import Route
 
 __all__ = [
@@ -57,8 +62,10 @@ __all__ = [
     "NO_ROUTE",
     "PALLET_NOT_FOUND",
     "PALLET_NOT_LIFTED",
+    "PATH_BLOCKED",
     "SAFETY_CHECK_FAILED",
     "SENSOR_TIMEOUT",
+    "SLOT_OCCUPIED",
     "STILL_MISALIGNED",
     "TASK_SPECS",
     "TIMEOUT",
@@ -97,6 +104,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
             "back_off",
             "replan",
             "approach",
+            "check_entry",
             "safety_check",
             "enter",
             "lift",
@@ -109,12 +117,13 @@ TASK_SPECS: dict[str, TaskSpec] = {
             ("done", "drive_to_pre_pallet", "calibrate"),
             ("done", "calibrate", "raise_forks"),
             ("done", "raise_forks", "estimate_pallet"),
-            ("aligned", "estimate_pallet", "safety_check"),
+            ("aligned", "estimate_pallet", "check_entry"),
             ("misaligned", "estimate_pallet", "lower_forks"),
             ("done", "lower_forks", "back_off"),
             ("done", "back_off", "replan"),
             ("done", "replan", "approach"),
             ("done", "approach", "calibrate"),
+            ("done", "check_entry", "safety_check"),
             ("done", "safety_check", "enter"),
             ("done", "enter", "lift"),
             ("done", "lift", "reverse_out"),
@@ -147,10 +156,11 @@ TASK_SPECS: dict[str, TaskSpec] = {
         ),
     ),
     "delivery": TaskSpec(
-        ("drive_to_pre_drop", "raise_forks", "enter", "lower", "reverse_out", "lower_to_travel", *_FINAL),
+        ("drive_to_pre_drop", "raise_forks", "check_slot", "enter", "lower", "reverse_out", "lower_to_travel", *_FINAL),
         (
             ("done", "drive_to_pre_drop", "raise_forks"),
-            ("done", "raise_forks", "enter"),
+            ("done", "raise_forks", "check_slot"),
+            ("done", "check_slot", "enter"),
             ("done", "enter", "lower"),
             ("done", "lower", "reverse_out"),
             ("done", "reverse_out", "lower_to_travel"),
@@ -250,7 +260,8 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
                     "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
                     "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
                     "replan": Replan,
-                    "approach": lambda: FollowRoute(pre, via=_edge_route(before, pre)),
+                    "check_entry": lambda: CheckVolume(entry_volume, PATH_BLOCKED, "the pallet's entry volume"),
+                    "approach": lambda: FollowRoute(pre, via=approach_route),
                     "return_to_roadmap": ReturnToRoadmap,
                 }
             )
@@ -260,6 +271,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
         return {
             "drive_to_pre_drop": lambda: FollowRoute(pre, check=_check_loaded),
             "raise_forks": lambda: SetForks(carry),
+            "check_slot": lambda: CheckVolume(slot_volume, SLOT_OCCUPIED, "the drop slot"),
             "enter": lambda: FollowRoute(pallet, via=_edge_route(pre, pallet)),
             "lower": lambda: SetForks(entry_height, check=_check_released),
             "reverse_out": lambda: FollowRoute(pre, via=_edge_route(pallet, pre)),

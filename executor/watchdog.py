@@ -53,10 +53,14 @@ class CommandedVehicle:
         self.emergency = False
 
     def drive(self, speed: float, steering: float) -> None:
-        """Drive command (m/s, rad); ignored after an emergency stop."""
+        """Drive command (m/s, rad); ignored after an emergency stop, capped at the safety scanners'
+        speed limit while their warning field is intruded (the truck caps it too)."""
         if self.emergency:
             self.inner.stop()
             return
+        limit = self.inner.safety_state().speed_limit
+        if limit is not None:
+            speed = min(max(speed, -limit), limit)
         self.commanded_speed = speed
         self.inner.drive(speed, steering)
 
@@ -158,7 +162,9 @@ class Watchdogs:
         if self._v_expected is None:
             self._v_expected, self._cmd_prev = measured, vehicle.commanded_speed
             return
-        predicted = self._model_step(self._v_expected, self._cmd_prev, dt, vehicle.emergency)
+        # The scanners' protective stop brakes like the safety stop, whatever was commanded.
+        braking_hard = vehicle.emergency or vehicle.inner.safety_state().protective_stop
+        predicted = self._model_step(self._v_expected, self._cmd_prev, dt, braking_hard)
         self._cmd_prev = vehicle.commanded_speed
         error = measured - predicted
         self._v_expected = predicted + self.PULL * error

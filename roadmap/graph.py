@@ -42,6 +42,11 @@ class NodeType(str, Enum):
 HEADING_REQUIRED = frozenset({NodeType.CHARGING, NodeType.PRE_PALLET, NodeType.PALLET, NodeType.DROP, NodeType.PARK})
 """Node types where the forklift's heading at the node is part of the node's meaning."""
 
+DEFAULT_PARKING_TYPES = frozenset({NodeType.PARK})
+"""Node types a truck may wait at when the map names none (`Roadmap.parking_types`)."""
+NOT_FOR_PARKING = frozenset({NodeType.PALLET, NodeType.PRE_PALLET, NodeType.DROP})
+"""Node types no map may allow for parking: slots and their approaches."""
+
 
 class Direction(str, Enum):
     """Direction of travel on an edge."""
@@ -142,6 +147,8 @@ class Roadmap:
         self.source = source
         self._graph: nx.DiGraph = nx.DiGraph()
         self.version = 0  # bumped on every change; planners cache on it
+        # Node types a truck may wait at (after a failed task): the map file's `parking_types`.
+        self.parking_types: frozenset[NodeType] = DEFAULT_PARKING_TYPES
 
     # -- building -----------------------------------------------------------------------
     def add_node(self, node: Node) -> None:
@@ -212,6 +219,10 @@ class Roadmap:
     def nodes(self) -> list[Node]:
         """All nodes."""
         return [d["node"] for _, d in self._graph.nodes(data=True)]
+
+    def parking_nodes(self) -> list[Node]:
+        """The (permanent) nodes of a type the map allows for parking (`parking_types`), in map order."""
+        return [n for n in self.nodes() if n.type in self.parking_types and not n.temporary]
 
     def edges(self) -> list[Edge]:
         """All edges."""

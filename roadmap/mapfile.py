@@ -4,6 +4,7 @@
 name: example warehouse
 vehicle: forklift.yaml          # optional: vehicle file (relative to this file) for the curvature limit
 default_speed_limit: 1.0        # m/s, for edges that give none
+parking_types: [park]           # optional: node types a truck may wait at after a failure (default: park)
 nodes:
   - {id: a1_pre, type: pre_pallet, x: 4.0, y: 2.0, yaw_deg: 90}
   - {id: a1, type: pallet, x: 4.0, y: 3.5, yaw_deg: 90, pre_pallet: a1_pre, height: 0.0}
@@ -33,7 +34,7 @@ from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import read_yaml, validate_model
 from palletpilot.roadmap.curves import Arc, CubicBezier, Curve, Line
 from palletpilot.roadmap.errors import RoadmapError
-from palletpilot.roadmap.graph import Direction, Edge, Node, NodeType, Roadmap
+from palletpilot.roadmap.graph import NOT_FOR_PARKING, Direction, Edge, Node, NodeType, Roadmap
 
 
 class _Strict(BaseModel):
@@ -72,6 +73,7 @@ class MapSpec(_Strict):
     name: str = "roadmap"
     vehicle: str | None = None
     default_speed_limit: float = Field(1.0, gt=0.0)
+    parking_types: list[NodeType] | None = Field(None, min_length=1)
     nodes: list[NodeSpec]
     edges: list[EdgeSpec] = []
 
@@ -141,6 +143,14 @@ def _load(path: Path) -> tuple[Roadmap, list[str]]:
 
     roadmap = Roadmap(spec.name, str(path))
     problems: list[str] = []
+    if spec.parking_types is not None:
+        banned = [t.value for t in spec.parking_types if t in NOT_FOR_PARKING]
+        if banned:
+            problems.append(
+                f"parking_types: {', '.join(banned)} nodes are slots or their approaches, no place to wait "
+                f"(allowed: {', '.join(t.value for t in NodeType if t not in NOT_FOR_PARKING)})"
+            )
+        roadmap.parking_types = frozenset(t for t in spec.parking_types if t not in NOT_FOR_PARKING)
     for ns in spec.nodes:
         if ns.id in roadmap:
             problems.append(f"duplicate node id '{ns.id}'")

@@ -11,14 +11,14 @@ their loads.
 
 All poses are in the world frame (SE2 on the floor, yaw about z); sizes in metres.
 
-Public API: `Solid`, `Contact`, `box_solid`, `rack_solids`, `first_contact`, `solid_corners`. The body's size is the
-vehicle file's `body` (`control.vehicle.BodyParams`).
+Public API: `Solid`, `Contact`, `box_solid`, `rack_solids`, `first_contact`, `overlapping`,
+`solid_corners`. The body's size is the vehicle file's `body` (`control.vehicle.BodyParams`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,23 +84,29 @@ def _overlap(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
     return True
 
 
-def first_contact(truck: Sequence[Solid], world: Sequence[Solid], tol: float = 1e-3) -> Contact | None:
-    """The first truck part that overlaps a world solid by more than `tol` (m), or None."""
+def overlapping(part: Solid, world: Sequence[Solid], tol: float = 1e-3) -> Iterator[Solid]:
+    """The world solids that overlap `part` by more than `tol` (m), in the order of `world`."""
     if not world:
-        return None
+        return
     centres = np.array([[s.pose.x, s.pose.y] for s in world])
     radii = np.array([s.radius for s in world])
-    for part in truck:
-        near = np.hypot(*(centres - [part.pose.x, part.pose.y]).T) < radii + part.radius
-        if not near.any():
+    near = np.hypot(*(centres - [part.pose.x, part.pose.y]).T) < radii + part.radius
+    if not near.any():
+        return
+    a = solid_corners(part)
+    for i in np.flatnonzero(near):
+        solid = world[int(i)]
+        if min(part.z[1], solid.z[1]) - max(part.z[0], solid.z[0]) <= tol:
             continue
-        a = solid_corners(part)
-        for i in np.flatnonzero(near):
-            solid = world[int(i)]
-            if min(part.z[1], solid.z[1]) - max(part.z[0], solid.z[0]) <= tol:
-                continue
-            if _overlap(a, solid_corners(solid), tol):
-                return Contact(part.kind, solid)
+        if _overlap(a, solid_corners(solid), tol):
+            yield solid
+
+
+def first_contact(truck: Sequence[Solid], world: Sequence[Solid], tol: float = 1e-3) -> Contact | None:
+    """The first truck part that overlaps a world solid by more than `tol` (m), or None."""
+    for part in truck:
+        for solid in overlapping(part, world, tol):
+            return Contact(part.kind, solid)
     return None
 
 

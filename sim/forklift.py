@@ -50,6 +50,8 @@ class SimForklift:
         self.fork_height_cmd = fork_height
         self.odometer = 0.0  # m travelled, for progress checks
         self.emergency = False  # the safety stop is latched: brake at emergency_decel, no drive commands
+        self.protective_stop = False  # the scanners' stop (not latched): brake at emergency_decel meanwhile
+        self.speed_cap: float | None = None  # m/s, the scanners' warning-field cap
 
     # -- commands -----------------------------------------------------------------------
     def command(self, speed: float, steering: float) -> None:
@@ -80,10 +82,16 @@ class SimForklift:
         p, s = self.params, self.state
         lag = max(p.actuator_lag_s, dt)
         # Speed: first-order lag towards the command, bounded by acceleration / deceleration. The safety
-        # stop acts on the brakes directly: no drive-controller lag, the emergency deceleration.
-        dv = (self.speed_cmd - s.v) * (1.0 if self.emergency else min(1.0, dt / lag))
-        braking = abs(self.speed_cmd) < abs(s.v) or self.speed_cmd * s.v < 0
-        decel = p.emergency_decel if self.emergency else p.max_decel
+        # stop (and the scanners' protective stop) acts on the brakes directly: no drive-controller lag,
+        # the emergency deceleration. The warning field caps the command.
+        hard = self.emergency or self.protective_stop
+        cmd = 0.0 if hard else self.speed_cmd
+        if self.speed_cap is not None:
+            cmd = float(np.clip(cmd, -self.speed_cap, self.speed_cap))
+        over_cap = self.speed_cap is not None and abs(s.v) > self.speed_cap  # safe speed: braked, not lagged
+        dv = (cmd - s.v) * (1.0 if hard or over_cap else min(1.0, dt / lag))
+        braking = abs(cmd) < abs(s.v) or cmd * s.v < 0
+        decel = p.emergency_decel if hard else p.max_decel
         dv_max = (decel if braking else p.max_accel) * dt
         v_new = s.v + float(np.clip(dv, -dv_max, dv_max))
         # Steering: first-order lag towards the command, bounded by the steering rate and angle.

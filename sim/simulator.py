@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from palletpilot.control.safety import FIELD_SETS, SafetyState
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.frames import FrameBundle
@@ -34,6 +35,7 @@ from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
 from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids, solid_corners
 from palletpilot.sim.forklift import LocalizationNoise, SimForklift
+from palletpilot.sim.scanner import SimScanner
 from palletpilot.sim.scenario import Scenario, SimError
 from palletpilot.sim.snapshot import restore_snapshot, take_snapshot
 from palletpilot.sim.world import (
@@ -56,6 +58,9 @@ BEAM_MAX_RANGE_M = 4.0
 
 CARGO_SIZE = (1.15, 0.78, 0.9)
 """Cargo box on a loaded pallet (m, x y z)."""
+
+WALKER_YIELD_M = 0.5
+"""A walking person waits rather than come closer than this (m) to the truck."""
 
 _BACKREST = ((-0.12, -0.40, 0.0), (0.0, 0.40, 1.2))  # load backrest box (m), forklift frame above lift height
 
@@ -132,9 +137,11 @@ class Simulator:
         self.camera = CameraModel.d435(scenario.camera.width, scenario.camera.height)
         self.T_forklift_camera_true = self._perturbed_mount()
         self.time = 0.0
+        self.walk_t = [0.0] * len(scenario.clutter)  # how long each person has walked (s; waiting stops it)
         self.battery_level: float | None = scenario.battery_level if self.vehicle.battery is not None else None
         self._chargers = [n.pose for n in self.roadmap.nodes() if n.type is NodeType.CHARGING]
         self.collisions: list[dict[str, Any]] = []  # contacts: t_s, kind, id, part, message (the first stops all)
+        self.scanner = SimScanner(self.vehicle)
 
         self.pallets: list[SimPallet] = []
         for i, placement in enumerate(scenario.pallets):
@@ -199,7 +206,43 @@ class Simulator:
 
     def _walker_poses(self) -> list[tuple[int, SE2]]:
         """The walking people (clutter index) and where they are now (world)."""
-        return [(i, SE2(*c.pose_at(self.time))) for i, c in enumerate(self.scenario.clutter) if c.path]
+        return [(i, SE2(*c.pose_at(self.walk_t[i]))) for i, c in enumerate(self.scenario.clutter) if c.path]
+
+    def _walk(self, dt: float) -> None:
+        """Walk the people on by `dt` (s); one who would come within `WALKER_YIELD_M` of the truck, or
+        step into its protective field, waits (people give way to a forklift), so a walker never steps
+        into the truck. One the truck has come close to walks on only where it does not come closer."""
+        truck: list[Solid] = []
+        m, f = WALKER_YIELD_M, 0.1
+        field = [dataclasses.replace(s, z=(0.0, 2.0)) for s in self.scanner.protective_zone]
+
+        def near(pose: SE2) -> bool:
+            zone = box_solid("person", "", pose, (-0.13 - m, -0.31 - m, 0.0), (0.13 + m, 0.31 + m, 1.75))
+            if first_contact(truck, [zone]) is not None:
+                return True
+            return (
+                first_contact(
+                    field, [box_solid("person", "", pose, (-0.13 - f, -0.31 - f, 0), (0.13 + f, 0.31 + f, 1.75))]
+                )
+                is not None
+            )
+
+        body, front = self.vehicle.body, self._front_x()
+        T_fw = self.true_pose.inv()
+
+        def clearance(pose: SE2) -> float:  # outside the truck's footprint rectangle (m, negative inside)
+            x, y = T_fw.apply([pose.x, pose.y])
+            return max(body.rear_x - x, x - front, abs(y) - 0.5 * body.width)
+
+        for i, c in enumerate(self.scenario.clutter):
+            if not c.path:
+                continue
+            if not truck:
+                hull, forks = self._truck_solids()
+                truck = hull + forks
+            here, ahead = SE2(*c.pose_at(self.walk_t[i])), SE2(*c.pose_at(self.walk_t[i] + dt))
+            if not near(ahead) or (near(here) and clearance(ahead) >= clearance(here) - 1e-9):
+                self.walk_t[i] += dt
 
     def _walker_meshes(self) -> list[LabeledMesh]:
         return [person_mesh(pose) for _, pose in self._walker_poses()]
@@ -375,6 +418,42 @@ class Simulator:
         """Safety faults: the contacts of the forks or backrest with a pallet."""
         return [f"collision: {c['message']}" for c in self.collisions]
 
+    def safety_state(self) -> SafetyState:
+        """The safety scanners' state after the last step (`control.safety.SafetyState`)."""
+        return self.scanner.state
+
+    def set_safety_field_set(self, name: str) -> None:
+        """Select the scanners' field set: `normal`, or `narrow` for entering a pallet or a floor drop slot."""
+        if name not in FIELD_SETS:
+            raise SimError(f"unknown safety field set '{name}' (one of {', '.join(FIELD_SETS)})")
+        self.scanner.field_set = "narrow" if name == "narrow" else "normal"
+
+    def _scanner_world(self) -> list[Solid]:
+        """What the scan plane can meet: walls, racks, people, boxes, resting pallets and their loads."""
+        pallets = [s for p in self.pallets if not p.carried for s in self._pallet_solids(p)]
+        return self._fixed_solids + self._walker_solids() + pallets
+
+    def _front_x(self) -> float:
+        """The truck's leading end going forward (m, forklift frame): the fork tips or a carried pallet."""
+        front = self.forks.tip_x
+        T_fw = self.T_world_forklift3.inv()
+        for p in self.pallets:
+            if p.carried:
+                far = T_fw @ p.T_world_pallet @ SE3.from_translation(self.pallet_type.length, 0.0, 0.0)
+                front = max(front, float(far.t[0]))
+        return front
+
+    def _update_scanner(self, dt: float) -> None:
+        """Run the scanners and hand their stop and speed cap to the truck."""
+        if not self.scanner.enabled:
+            return
+        fl = self.forklift
+        state = self.scanner.update(
+            dt, self.true_pose, fl.state.v, fl.speed_cmd, self._front_x(), self._scanner_world()
+        )
+        fl.protective_stop = state.protective_stop
+        fl.speed_cap = state.speed_limit
+
     @property
     def T_world_forklift3(self) -> SE3:
         """True forklift pose as SE3 (on the floor)."""
@@ -467,7 +546,9 @@ class Simulator:
     def step(self, dt: float = CONTROL_DT) -> None:
         """Advance simulated time by `dt` (s): vehicle, mast, battery, carried pallets, contacts."""
         height_before = self.fork_height
+        self._update_scanner(dt)
         self.forklift.step(dt)
+        self._walk(dt)
         self.time += dt
         self._update_battery(dt, max(self.fork_height - height_before, 0.0))
         self._update_pallets()

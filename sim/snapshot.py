@@ -144,6 +144,7 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
         "map": str(sim.scenario.map),
         "pallet_nodes": [p.node for p in sim.pallets],
         "time": float(sim.time),
+        "walk_t": [float(t) for t in sim.walk_t],
         "battery_level": sim.battery_level,
         "forklift": {
             "pose": se2_to_doc(st.pose),
@@ -170,6 +171,12 @@ def take_snapshot(sim: Simulator) -> dict[str, Any]:
             for p in sim.pallets
         ],
         "collisions": [dict(c) for c in sim.collisions],
+        "safety": {
+            "field_set": sim.scanner.field_set,
+            "direction": sim.scanner.direction,
+            "held": sim.scanner.held,
+            "clear_s": float(sim.scanner.clear_s),
+        },
         "rng": {key: rng_to_doc(g) for key, g in _generators(sim).items()},
         "T_forklift_camera_true": se3_to_doc(sim.T_forklift_camera_true),
     }
@@ -205,6 +212,10 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise _FieldError(f"seed must be an integer, got {seed!r}")
     time = _float(_field(doc, "time", "snapshot"), "time")
+    walk = doc.get("walk_t", [time] * len(sim.walk_t))
+    if not isinstance(walk, list) or len(walk) != len(sim.walk_t):
+        raise _FieldError(f"walk_t must be a list of {len(sim.walk_t)} numbers")
+    walk_t = [_float(t, "walk_t") for t in walk]
     battery = _field(doc, "battery_level", "snapshot")
     if battery is not None and (not isinstance(battery, int | float) or not 0.0 <= battery <= 1.0):
         raise _FieldError("battery_level must be null or a number in 0..1")
@@ -243,6 +254,15 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     collisions = _field(doc, "collisions", "snapshot")
     if not isinstance(collisions, list) or not all(isinstance(c, dict) and "message" in c for c in collisions):
         raise _FieldError("collisions must be a list of contact records (t_s, kind, id, part, message)")
+    safety = doc.get("safety", {"field_set": "normal", "direction": "forward", "held": False, "clear_s": 0.0})
+    if (
+        not isinstance(safety, dict)
+        or safety.get("field_set") not in ("normal", "narrow")
+        or safety.get("direction") not in ("forward", "reverse")
+        or not isinstance(safety.get("held"), bool)
+    ):
+        raise _FieldError("safety must hold field_set (normal|narrow), direction (forward|reverse), held, clear_s")
+    safety = {**safety, "clear_s": _float(safety.get("clear_s"), "safety.clear_s")}
     rng_doc = _field(doc, "rng", "snapshot")
     rngs = {
         key: rng_state_from_doc(g, _field(rng_doc, key, "rng"), f"rng.{key}") for key, g in _generators(sim).items()
@@ -251,10 +271,12 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
     return {
         "seed": seed,
         "time": time,
+        "walk_t": walk_t,
         "battery_level": None if battery is None else float(battery),
         "forklift": forklift,
         "pallets": decoded,
         "collisions": list(collisions),
+        "safety": safety,
         "rng": rngs,
         "mount": mount,
     }
@@ -263,6 +285,7 @@ def _parse(sim: Simulator, doc: dict[str, Any]) -> dict[str, Any]:
 def _apply(sim: Simulator, state: dict[str, Any]) -> None:
     sim.seed = state["seed"]
     sim.time = state["time"]
+    sim.walk_t = list(state["walk_t"])
     sim.battery_level = state["battery_level"]
     f, fl = state["forklift"], sim.forklift
     fl.state.pose, fl.state.v, fl.state.steering, fl.state.fork_height = (
@@ -283,6 +306,9 @@ def _apply(sim: Simulator, state: dict[str, Any]) -> None:
         p.T_world_pallet, p.T_forks_pallet = d["T_world_pallet"], d["T_forks_pallet"]
         p.lifted, p.initial = d["lifted"], d["initial"]
     sim.collisions = state["collisions"]
+    sc = sim.scanner
+    sc.field_set, sc.direction = state["safety"]["field_set"], state["safety"]["direction"]
+    sc.held, sc.clear_s = state["safety"]["held"], state["safety"]["clear_s"]
     for key, g in _generators(sim).items():
         g.bit_generator.state = state["rng"][key]
     sim.T_forklift_camera_true = state["mount"]

@@ -362,19 +362,3 @@ def test_until_level_needs_a_battery_model(tmp_path):
     with pytest.raises(MissionError) as info:
         validate_mission(mission, load_map(mission.map_path), vehicle, "charger", str(path))
     assert "until_level needs a battery model" in info.value.problems[0]
-
-
-def test_a_person_on_the_route_is_a_collision_that_ends_the_mission_with_the_truck_stopped(tmp_path):
-    # No safety scanner yet (issue 15): the truck meets the person, but the contact is physical now,
-    # stops the truck, fails the task with `collision` and names the person in the report.
-    sc = Scenario.model_validate(
-        {"map": "warehouse.yaml", "start": "b1", "clutter": [{"kind": "person", "x": 20.0, "y": 11.0, "yaw_deg": 0}]}
-    )
-    sc.folder = MISSIONS
-    r = run(tmp_path, [{"type": "move", "node": "b_top"}], sc)
-    assert not r.success and r.runner.results[0].reason == "collision"
-    (hit,) = r.sim.collisions
-    assert hit["kind"] == "person" and hit["id"] == "clutter[0]"
-    assert abs(r.sim.speed) < 1e-3 and r.sim.true_pose.y < 11.0
-    doc = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert doc["collisions"][0]["kind"] == "person"

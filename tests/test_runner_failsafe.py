@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from palletpilot.control.follower import DriveCommand, FollowerStatus
+from palletpilot.control.safety import SafetyState
 from palletpilot.control.vehicle import load_vehicle
 from palletpilot.executor.app import run_simulated
 from palletpilot.executor.clock import SimClock, WallClock
@@ -91,6 +92,12 @@ class FakeVehicle:
 
     def faults(self) -> list[str]:
         return []
+
+    def safety_state(self) -> SafetyState:
+        return SafetyState()
+
+    def set_safety_field_set(self, name: str) -> None:
+        self.field_set = name
 
     def step(self, dt: float) -> None:
         self.t += dt

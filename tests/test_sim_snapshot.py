@@ -84,6 +84,7 @@ def through_json(doc: dict) -> dict:
 
 def enter_and_lift(sim: Simulator) -> None:
     """Closed loop from floor_b2_pre: the forks into the pockets of the pallet at floor_b2, then lift."""
+    sim.set_safety_field_set("narrow")  # as the executor does to enter a pallet on the floor
     play(sim, [(0.0, 0.0, 0.025)] * 20)  # blades mid-pocket
     start, braking = sim.true_pose, 0.3**2 / (2 * sim.vehicle.max_decel)
     while sim.true_pose.distance_to(start) < 2.46 - braking and not sim.collisions:
@@ -216,7 +217,7 @@ def test_restore_refuses_other_versions_and_other_pallets():
 # Everything a Simulator holds, as built. New state must be added to the snapshot (`sim/snapshot.py`)
 # when it evolves while the simulator runs, or to the fixed part here when it is set at construction.
 SNAPSHOT_ATTRIBUTES = {"seed", "rng", "forklift", "_loc_rng", "_cam_rng", "T_forklift_camera_true", "time"}
-SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets", "battery_level"}
+SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets", "battery_level", "walk_t", "scanner"}
 FIXED_ATTRIBUTES = {"scenario", "roadmap", "vehicle", "forks", "pallet_type", "_pallet_parts", "_part_lo", "_part_hi"}
 FIXED_ATTRIBUTES |= {"localization_noise", "camera", "_racks", "_fixed_mesh", "_forks_local", "_fixed_solids"}
 FIXED_ATTRIBUTES |= {"_chargers"}
@@ -228,7 +229,10 @@ def test_the_snapshot_covers_every_piece_of_simulator_state():
     assert set(vars(sim)) == SNAPSHOT_ATTRIBUTES | FIXED_ATTRIBUTES | CACHE_ATTRIBUTES
     fixed_forklift = {"params", "slip_sigma"}
     snap_forklift = {"state", "rng", "speed_cmd", "steering_cmd", "fork_height_cmd", "odometer", "emergency"}
-    assert set(vars(sim.forklift)) == fixed_forklift | snap_forklift
+    from_scanner = {"protective_stop", "speed_cap"}  # set from the (snapshotted) scanner before every step
+    assert set(vars(sim.forklift)) == fixed_forklift | snap_forklift | from_scanner
+    fixed_scanner, cache_scanner = {"params"}, {"state", "protective_zone"}  # recomputed every step
+    assert set(vars(sim.scanner)) == fixed_scanner | cache_scanner | set(sim.snapshot()["safety"])
     commands = {"speed_cmd", "steering_cmd", "fork_height_cmd", "odometer", "emergency"}
     assert {f.name for f in dataclasses.fields(ForkliftState)} | commands == set(sim.snapshot()["forklift"])
     pallet_doc = sim.snapshot()["pallets"][0]

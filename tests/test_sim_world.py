@@ -37,6 +37,18 @@ def scenario(dy: float = 0.0, dyaw_deg: float = 0.0, node: str = "floor_b2", loa
     return sc
 
 
+def entering(sim: Simulator) -> Simulator:
+    """The scanners' narrow field set, as the executor selects it to enter a pallet on the floor."""
+    sim.set_safety_field_set("narrow")
+    return sim
+
+
+def without_scanners(sim: Simulator) -> Simulator:
+    """A truck without safety scanners: nothing but the contacts stops it (the physics under test)."""
+    sim.scanner.params = sim.vehicle.model_copy(update={"safety_scanner": None})
+    return sim
+
+
 def set_forks(sim: Simulator, height: float) -> None:
     sim.set_fork_height(height)
     for _ in range(400):
@@ -66,7 +78,7 @@ def pallet_height(sim: Simulator, node: str) -> float:
 
 
 def test_aligned_pallet_beams_clear_then_lift_carry_and_set_down():
-    sim = Simulator(scenario())
+    sim = entering(Simulator(scenario()))
     set_forks(sim, 0.025)  # fork bottoms 25 mm up: the 50 mm blades sit mid-pocket (pocket 100 mm)
     face = 2.5 + 0.05 - sim.forks.tip_x  # pre-pallet to pallet node 2.5 m, entry gap 5 cm
     left, right = sim.proximity_ranges()
@@ -96,7 +108,7 @@ def test_beams_on_blocks_stop_at_the_entry_face():
 def test_a_misaligned_entry_is_a_collision():
     # 8 cm off: the thin beams on the fork centre lines still pass the (shifted) pockets, which are
     # 113 mm wide on either side of them, but the forks have only 33.75 mm of clearance.
-    sim = Simulator(scenario(dy=0.08))
+    sim = entering(Simulator(scenario(dy=0.08)))
     set_forks(sim, 0.025)
     face = 2.5 + 0.05 - sim.forks.tip_x
     assert min(sim.proximity_ranges()) > face + sim.pallet_type.length
@@ -114,14 +126,14 @@ def test_a_misaligned_entry_is_a_collision():
 
 
 def test_forks_too_low_hit_nothing_in_the_pocket_but_too_high_hit_the_deck():
-    sim = Simulator(scenario())
+    sim = entering(Simulator(scenario()))
     set_forks(sim, 0.08)  # blade top 0.13 m: above the 0.100 m pocket, into the cross boards
     drive_straight(sim, 2.46)
     assert sim.collisions and "cross_board" in sim.collisions[0]["message"]
 
 
 def test_rack_pallet_lifts_off_the_beams():
-    sim = Simulator(scenario(node="rack_a2", loaded=True))
+    sim = Simulator(scenario(node="rack_a2", loaded=True))  # rack pallets stand above the scan plane
     h = pallet_height(sim, "rack_a2")
     pallet = sim.pallets[0]
     assert pallet.T_world_pallet.t[2] == pytest.approx(h)
@@ -194,7 +206,7 @@ def clutter_scenario(clutter: list[dict]) -> Scenario:
 
 def test_forks_driving_into_a_person_are_a_contact_that_stops_the_truck():
     # floor_b2_pre stands at (22.5, 11.5) facing +x; the fork tips end 1.15 m ahead.
-    sim = Simulator(clutter_scenario([{"kind": "person", "x": 24.5, "y": 11.5, "yaw_deg": 180}]))
+    sim = without_scanners(Simulator(clutter_scenario([{"kind": "person", "x": 24.5, "y": 11.5, "yaw_deg": 180}])))
     set_forks(sim, 0.1)
     drive_straight(sim, 2.0)
     (hit,) = sim.collisions
@@ -210,7 +222,7 @@ def test_forks_driving_into_a_person_are_a_contact_that_stops_the_truck():
 
 def test_the_body_reversing_into_a_box_is_a_contact():
     box = {"kind": "box", "x": 20.2, "y": 11.5, "yaw_deg": 30, "size": [0.6, 0.4, 0.5]}
-    sim = Simulator(clutter_scenario([box]))
+    sim = without_scanners(Simulator(clutter_scenario([box])))
     drive_straight(sim, -1.5)
     (hit,) = sim.collisions
     assert (hit["kind"], hit["id"], hit["part"]) == ("box", "clutter[0]", "body")
@@ -229,16 +241,22 @@ def test_nothing_touches_when_the_truck_passes_beside_or_above():
     assert contact is not None and contact.solid.id == "p" and contact.part == "left fork"
 
 
-def test_a_person_walking_into_the_standing_forks_is_a_contact_with_that_person():
-    # The truck stands at floor_b2_pre (22.5, 11.5) facing +x, fork tips at x = 23.65; a person walks
-    # across 0.4 m inside the tips, from y = 14 to y = 9 at 1 m/s.
+def test_a_person_walking_across_the_standing_forks_waits_and_never_touches_them():
+    # The truck stands at floor_b2_pre (22.5, 11.5) facing +x, fork tips at x = 23.65; a person's path
+    # crosses 0.4 m inside the tips, from y = 14 to y = 9 at 1 m/s. People give way to a forklift: the
+    # walker stops short of the truck and of its protective field, and walks on once the truck has gone.
     walker = {"kind": "person", "x": 23.25, "y": 14.0, "path": [[23.25, 9.0]], "speed": 1.0}
     sim = Simulator(clutter_scenario([{"kind": "box", "x": 30.0, "y": 30.0}, walker]))
     for _ in range(200):
         sim.step()
-    (hit,) = sim.collisions
-    assert (hit["kind"], hit["id"]) == ("person", "clutter[1]") and hit["part"] in ("left fork", "right fork")
-    assert 2.0 < hit["t_s"] < 2.5  # the arms reach the left fork's outer side at y = 11.5 + 0.26 + 0.31
+    assert sim.collisions == []
+    ((_, waiting),) = sim._walker_poses()
+    assert 11.5 + 0.55 + 0.31 < waiting.y < 13.0  # stopped beside the truck, outside the fields
+    drive_straight(sim, -3.0)  # the truck backs away
+    for _ in range(200):
+        sim.step()
+    ((_, gone),) = sim._walker_poses()
+    assert sim.collisions == [] and gone.y == pytest.approx(9.0)
 
 
 def test_a_walking_person_goes_back_and_forth_along_the_path():
@@ -258,7 +276,7 @@ def test_a_free_standing_pallet_is_solid_and_reported_by_its_index():
         {"map": "warehouse.yaml", "start": "floor_b2_pre", "pallets": [{"x": 20.5, "y": 11.5, "yaw_deg": 90}]}
     )
     sc.folder = MISSIONS
-    sim = Simulator(sc)
+    sim = without_scanners(Simulator(sc))
     drive_straight(sim, -1.5)
     (hit,) = sim.collisions
     assert (hit["kind"], hit["id"], hit["part"]) == ("pallet", "pallets[0]", "body")
