@@ -4,6 +4,7 @@
 name: pick up a misplaced pallet and deliver it
 map: warehouse.yaml               # relative to this file
 return_on_failure: true           # optional: after a failed task wait at the nearest parking node
+blocked_wait_s: 30                # optional: a blocked path holds a task this long (s), then path_blocked
 tasks:
   - {type: pickup, node: floor_b2}              # height (m): default the pallet node's height
   - {type: delivery, node: drop, height: 0.0}   # put the pallet down at a drop (or pallet) node
@@ -114,6 +115,9 @@ class Mission(BaseModel):
     or a cancel: then the truck stays stopped), leave for the nearest parking node of the map and wait
     there. A pickup, delivery or move task's own `return_on_failure` overrides it; None: the executor's
     `Settings.return_on_failure` (off)."""
+    blocked_wait_s: float | None = Field(None, gt=0.0, le=3600.0)
+    """How long (s) a blocked path or entry holds a task before `path_blocked` / `slot_occupied`
+    (default: the executor's `Settings.blocked_wait_s`, 30 s)."""
     tasks: list[Task] = Field(min_length=1)
     folder: Path = Field(Path("."), exclude=True)
 

@@ -110,6 +110,8 @@ class Runner:
         self.mission = mission
         self.clock = clock
         self.settings = settings or Settings()
+        if mission.blocked_wait_s is not None:
+            self.settings.blocked_wait_s = mission.blocked_wait_s
         self.events = events
         self.progress = Progress(progress) if progress is not None else None
         self.controls = controls or Controls()
