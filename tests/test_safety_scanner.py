@@ -34,9 +34,10 @@ def _scenario(start: str, clutter: list[dict], vehicle: str | None = None, folde
     return sc
 
 
-def _run(tmp_path: Path, tasks: list[dict], sc: Scenario, settings: Settings | None = None):
+def _run(tmp_path: Path, tasks: list[dict], sc: Scenario, settings: Settings | None = None, **keys: object):
     path = tmp_path / "mission.yaml"
-    path.write_text(yaml.safe_dump({"name": "t", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks}))
+    doc = {"name": "t", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks, **keys}
+    path.write_text(yaml.safe_dump(doc))
     return run_simulated(path, scenario=sc, report_dir=tmp_path / "report", settings=settings)
 
 
@@ -102,7 +103,7 @@ def test_protective_stop_releases_once_the_person_has_gone():
 
 def test_a_person_standing_on_the_route_holds_the_task_then_fails_path_blocked(tmp_path):
     sc = _scenario("b1", [{"kind": "person", "x": 20.0, "y": 11.0, "yaw_deg": 0}])
-    r = _run(tmp_path, [{"type": "move", "node": "b_top"}], sc, settings=_short_wait())
+    r = _run(tmp_path, [{"type": "move", "node": "b_top"}], sc, blocked_wait_s=8.0)  # the mission's key
     result = r.runner.results[0]
     assert not r.success and result.reason == "path_blocked", result.message
     assert "person 'clutter[0]'" in (result.message or "")
