@@ -159,12 +159,13 @@ class EstimatePallet(Behaviour):
             if len(self.frames) < wanted:
                 return None
             taken = list(self.frames)
+            expected = _expected_pallet(ctx)
 
             def estimate() -> tuple[list[PalletEstimate], list[str]]:
                 estimates, errors = [], []
                 for f, pose, _ in taken:
                     try:
-                        estimates.append(perception.estimate_pallet(f, calibration, pose))
+                        estimates.append(perception.estimate_pallet(f, calibration, pose, expected))
                     except PerceptionError as exc:
                         errors.append(str(exc))
                 return estimates, errors
@@ -249,6 +250,15 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
+
+
+def _expected_pallet(ctx: Context) -> SE2:
+    """Where this pickup's pallet is expected (`T_world_pallet`, world): the previous estimate, else the
+    pallet node's nominal pose. Perception fits only the pallet instance standing there."""
+    if ctx.estimated_pallet is not None:
+        return ctx.estimated_pallet.to_se2()
+    node = ctx.roadmap.node(ctx.pallet_node)
+    return pallet_pose_at_node(node.pose, node.height).to_se2()
 
 
 def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:

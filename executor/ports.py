@@ -80,8 +80,15 @@ class PerceptionService(Protocol):
     def calibrate(self, frames: Sequence[FrameBundle]) -> Calibration:
         """`T_forklift_camera` from frames of the forks and the floor (raises `CalibrationError`)."""
 
-    def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
-        """The pallet's pose (raises `PalletNotFound`)."""
+    def estimate_pallet(
+        self,
+        frame: FrameBundle,
+        calibration: Calibration,
+        T_world_forklift: SE2,
+        expected_T_world_pallet: SE2 | None = None,
+    ) -> PalletEstimate:
+        """The pallet's pose (raises `PalletNotFound`); with `expected_T_world_pallet` (world frame) only
+        the pallet instance standing there, within a gate, is taken (`perception.instances`)."""
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
         """Depth points inside an upright box ahead of the forks (forklift frame), and how much of it was seen."""
@@ -117,9 +124,19 @@ class LocalPerception:
         """Calibrate; on failure the last good calibration stays in `last_good`."""
         return self.calibrator.calibrate([self._labelled(f) for f in frames])
 
-    def estimate_pallet(self, frame: FrameBundle, calibration: Calibration, T_world_forklift: SE2) -> PalletEstimate:
-        """Estimate the pallet's pose in the forklift and world frames."""
-        return estimate_pallet(self._labelled(frame), calibration, self.pallet, T_world_forklift=T_world_forklift)
+    def estimate_pallet(
+        self,
+        frame: FrameBundle,
+        calibration: Calibration,
+        T_world_forklift: SE2,
+        expected_T_world_pallet: SE2 | None = None,
+    ) -> PalletEstimate:
+        """Estimate the pallet's pose in the forklift and world frames; with `expected_T_world_pallet`
+        (world) only the pallet instance standing there is fitted."""
+        expected = None if expected_T_world_pallet is None else T_world_forklift.inv() @ expected_T_world_pallet
+        return estimate_pallet(
+            self._labelled(frame), calibration, self.pallet, T_world_forklift=T_world_forklift, expected=expected
+        )
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
         """Depth points inside `volume` (forklift frame) and the share of it the camera saw."""

@@ -6,6 +6,10 @@ face on the pallet's underside, x into the pallet, y left, z up). SI units throu
 
 Method, in the forklift frame with the camera at `calibration.T_forklift_camera_at(frame.fork_height)`:
 
+0. **Instance** (only with `expected`, the pose where the pallet should be): the pallet pixels are
+   split into pallet instances at depth jumps (`perception.instances`); only the instance whose
+   entry face is nearest to `expected`, within a gate, is fitted, and other instances' pixels are
+   left out of every step below (else `PalletNotFound("not_where_expected")`).
 1. **Pixels.** Pixels labelled pallet-empty (7) or pallet-full (8) with depth. Each pixel is a ray
    `p(z) = t + d z` (`d` the forklift-frame direction of the pixel for unit camera z-depth) and a
    measured inverse depth `w = 1 / z`. A stereo camera's error is in disparity, i.e. in `w`, with a
@@ -58,6 +62,7 @@ from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.instances import InstanceConfig, select_instance
 from palletpilot.perception.pointcloud import check_intrinsics, class_mask
 from palletpilot.perception.specs import PalletType
 
@@ -67,7 +72,7 @@ PALLET_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL
 _ON_DECK_CLASSES = (int(SemanticClass.CARGO), int(SemanticClass.OTHER_OBJECT), int(SemanticClass.PERSON))
 """Classes that may stand on a pallet's deck and hide it."""
 
-NotFoundReason = Literal["too_few_points", "no_entry_face", "pockets_inconsistent"]
+NotFoundReason = Literal["too_few_points", "no_entry_face", "pockets_inconsistent", "not_where_expected"]
 
 
 class PalletNotFound(PerceptionError):  # noqa: N818 (the name the architecture gives it)
@@ -138,6 +143,8 @@ class PalletEstimatorConfig:
     """Largest yaw change the deck may make (searched within 4 face sigmas, at most this)."""
     deck_lateral_step_m: float = 0.0005
     """Resolution of the lateral cost tables."""
+    instances: InstanceConfig = field(default_factory=InstanceConfig)
+    """Instance separation and its gate, with `expected` (see `perception.instances`)."""
 
 
 DEFAULT_CONFIG = PalletEstimatorConfig()
@@ -829,14 +836,19 @@ def estimate_pallet(
     pallet: PalletType | None = None,
     T_world_forklift: SE2 | None = None,
     config: PalletEstimatorConfig = DEFAULT_CONFIG,
+    *,
+    expected: SE2 | None = None,
 ) -> PalletEstimate:
     """The pose of the pallet in front of the forks from one labelled RGB-D frame.
 
     `calibration.T_forklift_camera_at(frame.fork_height)` places the camera; the result's
     `T_forklift_pallet` is the pallet frame (origin at the centre of the entry face on the underside,
     x into the pallet) in the forklift frame, `T_world_pallet` is added when `T_world_forklift` (SE2)
-    is given. Raises `PalletNotFound` (too few points, no entry face, pockets inconsistent) and
-    `PerceptionError` when the frame has no labels.
+    is given. With `expected` (`T_forklift_pallet` on the floor, SE2: where the pallet should be, in
+    the forklift frame) only the pallet instance whose entry face is nearest to it, within
+    `config.instances.gate_m`, is fitted and other pallets' pixels are left out (`perception.instances`);
+    without it every pallet-labelled pixel counts. Raises `PalletNotFound` (too few points, no entry
+    face, pockets inconsistent, not where expected) and `PerceptionError` when the frame has no labels.
     """
     t_start = time.perf_counter()
     pallet = pallet or PalletType.eur()
@@ -853,6 +865,18 @@ def estimate_pallet(
     rows, cols = np.nonzero(labelled & valid)
     if len(rows) < cfg.min_points:
         raise PalletNotFound("too_few_points", f"{len(rows)} pallet pixels with depth, need at least {cfg.min_points}")
+    if expected is not None:  # 0. Only the expected pallet instance; other pallets' pixels are no evidence.
+        jumps = _depth_edges(depth, valid, cfg)
+        chosen = select_instance(frame, T_cf, labelled & valid, expected, jumps, cfg.instances)
+        if chosen.target is None:
+            raise PalletNotFound("not_where_expected", chosen.miss_message())
+        valid &= ~chosen.foreign_mask
+        rows, cols = np.nonzero(chosen.target_mask)
+        if len(rows) < cfg.min_points:
+            raise PalletNotFound("too_few_points", f"the expected pallet has {len(rows)} pixels with depth")
+        found = {"instances": len(chosen.instances), "instance_distance_m": chosen.target.distance_m}
+    else:
+        found = {}
     rays = _rays(depth, frame.K, R, rows, cols, np.ones(len(rows), bool))
     rng = np.random.default_rng(cfg.seed)
 
@@ -1036,6 +1060,7 @@ def estimate_pallet(
             "plane_residual_rms": float(np.sqrt(np.mean(res[np.abs(res) < trunc * sigma] ** 2))),
             "deck_pixels": 0 if deck is None else deck.n_pixels,
             "deck_height_m": None if deck is None else deck.deck_height,
+            **found,
         },
     )
     return estimate
