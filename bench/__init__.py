@@ -12,4 +12,5 @@ BENCHMARKS: dict[str, str] = {
     "mpc": "palletpilot.bench.mpc",
     "missions": "palletpilot.bench.missions",
     "faults": "palletpilot.bench.faults",
+    "safety": "palletpilot.bench.safety",
 }

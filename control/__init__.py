@@ -9,6 +9,8 @@ Public API:
   succeeded / failed; `FollowerConfig` (tolerances, failure and progress checks, speed profile):
   - `MpcFollower(params, MpcConfig)`: CasADi multiple-shooting MPC (`control.mpc`);
   - `PurePursuitFollower(params, PurePursuitConfig)`: regulated pure pursuit, the baseline.
+- `control.safety`: the safety scanners' fields (`safety_fields`, `stopping_distance`, `FIELD_SETS`)
+  and the `SafetyState` a vehicle reports.
 - `ControlError`.
 """
 

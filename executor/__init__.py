@@ -3,7 +3,8 @@
 Modules (public API in each module's docstring):
 
 - `mission`: mission files (`load_mission`, `validate_mission`); `tasks`: the task state machines as
-  data (`TASK_SPECS`, `build_machine`) and their behaviours (`behaviour`, `driving`, `pickup`).
+  data (`TASK_SPECS`, `build_machine`) and their behaviours (`behaviour`, `driving`, `pickup`,
+  `entry`: the entry and drop-slot checks).
 - `ports`: the interfaces the runner drives (`VehiclePort`, `PerceptionService`), apart from their
   implementations (the simulator in `sim`, `LocalPerception` here, a robot adapter later).
 - `runner`: `Runner`, the per-tick loop: behaviours, watchdogs, pause / cancel, fail-safe stops,

@@ -4,7 +4,11 @@
   `drive(speed, steering)`, `stop()`, `set_fork_height(h)`, `fork_height`, `proximity_ranges()`,
   `grab() -> FrameBundle`, `step(dt)`; truth for tests: `true_pose`, `pallets`, `collisions`,
   `T_forklift_camera_true`, `battery_level`, `pallet_records()`, `obstacle_outlines()`; `snapshot()`,
-  `restore(doc)`. Pickup physics: forks and backrest against the pallet's boards and blocks.
+  `restore(doc)`; the safety scanners: `safety_state()`, `set_safety_field_set(name)`.
+- `sim.pallets`: `SimPallet`, `RackSupport`, `PalletPhysics` (forks and backrest against the pallet's
+  boards and blocks: entering, lifting, carrying, setting down).
+- `sim.scanner`: `SimScanner`, the safety laser scanners and the safety function behind them (warning
+  field caps the speed, protective field stops the truck itself; fields from `control.safety`).
 - `sim.contacts`: everything else is solid (`Solid`, `first_contact`, `rack_solids`): the truck's
   body, forks and carried load against walls, racks, people (standing or walking), boxes, pallets, loads.
 - `sim.scenario`: scenario files (`load_scenario`, `Scenario`, `SimError`): map, start node, pallets

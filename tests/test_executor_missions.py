@@ -101,7 +101,9 @@ def test_pallet_too_far_off_fails_cleanly(tmp_path):
     r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
     task = r.summary["tasks"][0]
     assert not r.success and task["reason"] == "pallet_not_found", task
-    assert "not the mission's pallet" in r.runner.results[0].message
+    message = r.runner.results[0].message or ""
+    # Perception fits only the pallet where it is expected (or the envelope check refuses the estimate).
+    assert "from where it was expected" in message or "not the mission's pallet" in message
     assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == [] and not r.sim.pallets[0].carried
     assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
     assert "replan" not in [s["state"] for s in r.runner.results[0].states]
