@@ -37,7 +37,7 @@ class SimScanner:
         self.held = False  # a protective stop holds the truck
         self.clear_s = 0.0  # how long the restart fields have been clear while held (s)
         self.state = SafetyState()
-        self.protective_zone: list[Solid] = []  # the protective field as solids (world), after `update`
+        self.protective_zone: list[Solid] = []  # the field to keep clear as solids (world), after `update`
 
     @property
     def enabled(self) -> bool:
@@ -77,19 +77,20 @@ class SimScanner:
         fields = safety_fields(self.params, speed, direction, self.field_set, front_x)
         assert fields is not None
         protective = self._hits(fields.protective, pose, world)
-        self.protective_zone = self._zone(fields.protective, pose)
         warning = self._hits(fields.warning, pose, world)
+        restart = safety_fields(self.params, max(abs(speed), scanner.warning_speed), direction, self.field_set, front_x)
+        assert restart is not None
         if protective:
             self.held, self.clear_s = True, 0.0
         elif self.held:
-            restart = safety_fields(self.params, scanner.warning_speed, direction, self.field_set, front_x)
-            assert restart is not None
             if self._hits(restart.protective, pose, world):
                 self.clear_s = 0.0
             else:
                 self.clear_s += dt
                 if self.clear_s >= scanner.restart_delay_s - 1e-9:
                     self.held = False
+        # What must stay clear now: while held, the field it waits on to drive on (people keep out of it).
+        self.protective_zone = self._zone(restart.protective if self.held else fields.protective, pose)
         seen = {f"{s.kind} '{s.id}'": None for s in protective + warning}
         self.state = SafetyState(
             field_set=self.field_set,

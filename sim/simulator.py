@@ -201,7 +201,7 @@ class Simulator(PalletPhysics):
                 hull, forks = self._truck_solids()
                 truck = hull + forks
             here, ahead = SE2(*c.pose_at(self.walk_t[i])), SE2(*c.pose_at(self.walk_t[i] + dt))
-            if not near(ahead) or (near(here) and clearance(ahead) >= clearance(here) - 1e-9):
+            if not near(ahead) or (near(here) and clearance(ahead) >= clearance(here) - 1e-3):
                 self.walk_t[i] += dt
 
     def _walker_meshes(self) -> list[LabeledMesh]:
