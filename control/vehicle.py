@@ -10,47 +10,45 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from palletpilot.control.errors import ControlError
-from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.geometry.fileio import FileModel, load_yaml_model
 
 
-class MastParams(BaseModel):
+class MastParams(FileModel):
     """Fork carriage lift: heights of the fork bottoms (m) and lift speed (m/s)."""
 
-    model_config = ConfigDict(extra="forbid")
-
-    min_height: float = Field(0.0, ge=0.0)
-    max_height: float = Field(2.0, gt=0.0)
-    lift_speed: float = Field(0.2, gt=0.0)
-    lower_speed: float = Field(0.3, gt=0.0)
-    travel_height_empty: float = Field(0.0, ge=0.0, description="fork bottoms while driving empty (m)")
-    travel_height_loaded: float = Field(0.10, ge=0.0, description="fork bottoms while driving a load (m)")
+    min_height: float = Field(0.0, ge=0.0, le=15.0)
+    max_height: float = Field(2.0, gt=0.0, le=15.0)
+    lift_speed: float = Field(0.2, gt=0.0, le=2.0)
+    lower_speed: float = Field(0.3, gt=0.0, le=2.0)
+    travel_height_empty: float = Field(0.0, ge=0.0, le=15.0, description="fork bottoms while driving empty (m)")
+    travel_height_loaded: float = Field(0.10, ge=0.0, le=15.0, description="fork bottoms while driving a load (m)")
 
 
-class BatteryParams(BaseModel):
+class BatteryParams(FileModel):
     """The traction battery, as a state of charge between 0 and 1: drained by driving and lifting,
     charged at a charger. Levels are fractions of a full battery."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
-    drain_per_km: float = Field(0.05, ge=0.0, description="charge used per km driven")
-    drain_per_lift_m: float = Field(0.0005, ge=0.0, description="charge used per metre the forks rise")
-    charge_per_min: float = Field(0.01, gt=0.0, description="charge gained per minute at a charger")
+    drain_per_km: float = Field(0.05, ge=0.0, le=1.0, description="charge used per km driven")
+    drain_per_lift_m: float = Field(0.0005, ge=0.0, le=1.0, description="charge used per metre the forks rise")
+    charge_per_min: float = Field(0.01, gt=0.0, le=1.0, description="charge gained per minute at a charger")
 
 
-class BodyParams(BaseModel):
+class BodyParams(FileModel):
     """The truck's body as a box in the forklift frame (origin at the fork heels on the floor, x to the
     fork tips): from `rear_x` to `front_x` (m, behind the heels: negative), `width` (m) and `height` (m,
     the overhead guard). The default is a 1.5 t three-wheel counterbalance truck."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
-    rear_x: float = Field(-1.85, lt=0.0)
-    front_x: float = Field(-0.12, le=0.0)
-    width: float = Field(1.10, gt=0.0)
-    height: float = Field(2.20, gt=0.0)
+    rear_x: float = Field(-1.85, lt=0.0, ge=-10.0)
+    front_x: float = Field(-0.12, le=0.0, ge=-5.0)
+    width: float = Field(1.10, gt=0.0, le=5.0)
+    height: float = Field(2.20, gt=0.0, le=10.0)
 
     @model_validator(mode="after")
     def _length(self) -> BodyParams:
@@ -59,7 +57,7 @@ class BodyParams(BaseModel):
         return self
 
 
-class SafetyScannerParams(BaseModel):
+class SafetyScannerParams(FileModel):
     """2D safety laser scanners as ISO 3691-4 trucks carry them (`control.safety` draws the fields).
 
     The protective field reaches the stopping distance at the current speed plus `protective_margin`
@@ -71,37 +69,47 @@ class SafetyScannerParams(BaseModel):
     mutes the corridor `mute_half_width` either side of the forks' centre line and watches only the
     body's front corners beside it."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
-    scan_height: float = Field(0.10, gt=0.0, description="scan plane above the floor (m)")
-    response_time_s: float = Field(0.20, ge=0.0, description="scanner and safety PLC reaction time (s)")
-    protective_margin: float = Field(0.20, ge=0.0, description="protective field beyond the stopping distance (m)")
-    warning_extra: float = Field(1.50, ge=0.0, description="warning field beyond the protective field (m)")
-    warning_speed: float = Field(0.30, gt=0.0, description="speed cap while the warning field is intruded (m/s)")
-    lateral_margin: float = Field(0.10, ge=0.0, description="fields beyond the body's sides (m)")
-    restart_delay_s: float = Field(1.0, ge=0.0, description="clear fields this long before driving on (s)")
-    mute_half_width: float = Field(0.45, gt=0.0, description="narrow set: muted corridor either side of the forks (m)")
-    narrow_margin: float = Field(0.05, ge=0.0, description="narrow set: side fields beyond the stopping distance (m)")
+    scan_height: float = Field(0.10, gt=0.0, le=1.0, description="scan plane above the floor (m)")
+    response_time_s: float = Field(0.20, ge=0.0, le=2.0, description="scanner and safety PLC reaction time (s)")
+    protective_margin: float = Field(
+        0.20, ge=0.0, le=5.0, description="protective field beyond the stopping distance (m)"
+    )
+    warning_extra: float = Field(1.50, ge=0.0, le=10.0, description="warning field beyond the protective field (m)")
+    warning_speed: float = Field(
+        0.30, gt=0.0, le=3.0, description="speed cap while the warning field is intruded (m/s)"
+    )
+    lateral_margin: float = Field(0.10, ge=0.0, le=2.0, description="fields beyond the body's sides (m)")
+    restart_delay_s: float = Field(1.0, ge=0.0, le=60.0, description="clear fields this long before driving on (s)")
+    mute_half_width: float = Field(
+        0.45, gt=0.0, le=2.0, description="narrow set: muted corridor either side of the forks (m)"
+    )
+    narrow_margin: float = Field(
+        0.05, ge=0.0, le=2.0, description="narrow set: side fields beyond the stopping distance (m)"
+    )
 
 
-class VehicleParams(BaseModel):
+class VehicleParams(FileModel):
     """Kinematic and actuator limits of the forklift (SI units unless the name says otherwise)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     name: str = "forklift"
-    wheelbase: float = Field(gt=0.0, description="fixed front axle (origin) to steered drive wheel, m")
+    wheelbase: float = Field(gt=0.0, le=10.0, description="fixed front axle (origin) to steered drive wheel, m")
     max_steering_deg: float = Field(gt=0.0, lt=90.0)
-    max_steering_rate_deg_s: float = Field(gt=0.0)
-    max_speed_forward: float = Field(gt=0.0, description="m/s, fork tips leading")
-    max_speed_reverse: float = Field(gt=0.0, description="m/s")
-    max_accel: float = Field(gt=0.0, description="m/s^2")
-    max_decel: float = Field(gt=0.0, description="m/s^2")
+    max_steering_rate_deg_s: float = Field(gt=0.0, le=360.0)
+    max_speed_forward: float = Field(gt=0.0, le=10.0, description="m/s, fork tips leading")
+    max_speed_reverse: float = Field(gt=0.0, le=10.0, description="m/s")
+    max_accel: float = Field(gt=0.0, le=10.0, description="m/s^2")
+    max_decel: float = Field(gt=0.0, le=20.0, description="m/s^2")
     emergency_decel: float = Field(
-        1.5, gt=0.0, description="m/s^2, the safety stop: the truck's own brake, whatever the drive commands"
+        1.5, gt=0.0, le=20.0, description="m/s^2, the safety stop: the truck's own brake, whatever the drive commands"
     )
-    actuator_lag_s: float = Field(0.1, ge=0.0, description="first-order lag of speed and steering")
-    creep_speed: float = Field(0.3, gt=0.0, description="m/s, the fastest drive with the forks above travel height")
+    actuator_lag_s: float = Field(0.1, ge=0.0, le=5.0, description="first-order lag of speed and steering")
+    creep_speed: float = Field(
+        0.3, gt=0.0, le=2.0, description="m/s, the fastest drive with the forks above travel height"
+    )
     mast: MastParams = MastParams()
     body: BodyParams = BodyParams()
     battery: BatteryParams | None = None  # no battery model: `until_level` charging is not possible

@@ -23,11 +23,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.geometry import PalletpilotError
-from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.roadmap import NodeType, Planner, Roadmap, RoadmapError
 
 
@@ -35,8 +35,8 @@ class MissionError(PalletpilotError):
     """A mission that cannot be run as written; one line per problem."""
 
 
-class _Task(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Task(FileModel):
+    pass
 
 
 _RETURN_ON_FAILURE = Field(
@@ -49,7 +49,7 @@ class PickupTask(_Task):
 
     type: Literal["pickup"]
     node: str
-    height: float | None = Field(None, description="pallet height (m); default: the node's")
+    height: float | None = Field(None, ge=0.0, le=20.0, description="pallet height (m); default: the node's")
     return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
@@ -58,7 +58,7 @@ class DeliveryTask(_Task):
 
     type: Literal["delivery"]
     node: str
-    height: float | None = Field(None, description="drop height (m); default: the node's")
+    height: float | None = Field(None, ge=0.0, le=20.0, description="drop height (m); default: the node's")
     return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
@@ -75,7 +75,7 @@ class ChargeTask(_Task):
 
     type: Literal["charge"]
     node: str
-    minutes: float | None = Field(None, gt=0)
+    minutes: float | None = Field(None, gt=0, le=24 * 60)
     until_level: float | None = Field(None, gt=0, le=1)
 
     @model_validator(mode="after")
@@ -89,7 +89,7 @@ class WaitTask(_Task):
     """Stand still for some seconds."""
 
     type: Literal["wait"]
-    seconds: float = Field(gt=0)
+    seconds: float = Field(gt=0, le=86_400, description="at most a day (s)")
 
 
 Task = Annotated[PickupTask | DeliveryTask | MoveTask | ChargeTask | WaitTask, Field(discriminator="type")]
@@ -101,10 +101,8 @@ NODE_TYPES: dict[str, tuple[NodeType, ...]] = {
 }
 
 
-class Mission(BaseModel):
+class Mission(FileModel):
     """A mission file: a name, a map and the tasks in order."""
-
-    model_config = ConfigDict(extra="forbid")
 
     name: str = "mission"
     map: str
@@ -118,7 +116,7 @@ class Mission(BaseModel):
     blocked_wait_s: float | None = Field(None, gt=0.0, le=3600.0)
     """How long (s) a blocked path or entry holds a task before `path_blocked` / `slot_occupied`
     (default: the executor's `Settings.blocked_wait_s`, 30 s)."""
-    tasks: list[Task] = Field(min_length=1)
+    tasks: list[Task] = Field(min_length=1, max_length=10_000)
     folder: Path = Field(Path("."), exclude=True)
 
     @property
@@ -142,12 +140,13 @@ def load_mission(path: str | Path) -> Mission:
     return mission
 
 
-def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams, start: str, where: str) -> None:
+def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams, start: str | None, where: str) -> None:
     """Check every task against the map and the vehicle; raise `MissionError` listing all problems.
 
     Reachability is checked along the chain: from `start`, each task's node must be reachable from
     where the previous task left the forklift (a pickup or delivery ends at its pre-pallet node). The
     load is followed too: no pickup while the forks carry a load, no delivery with empty forks.
+    `start` None (an unknown start, reported elsewhere): reachability is not checked.
     """
     problems: list[str] = []
     planner = Planner(roadmap)
@@ -192,7 +191,8 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
             problems.append(f"{label}: node '{node_id}' names no pre-pallet node to approach it from")
             continue
         try:
-            planner.plan(here, target)
+            if here is not None:
+                planner.plan(here, target)
         except RoadmapError:
             problems.append(f"{label}: node '{target}' cannot be reached from '{here}'")
             continue

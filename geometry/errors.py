@@ -7,6 +7,11 @@ or frame at fault. The CLI prints the message as one line on stderr and exits wi
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
+
 
 class PalletpilotError(Exception):
     """Base of all expected palletpilot errors (bad input, infeasible requests).
@@ -28,3 +33,23 @@ class OutputError(PalletpilotError):
 
     The CLI exits with code 3 for it, apart from 1 (mission failed) and 2 (bad input).
     """
+
+
+def collect(problems: list[str], load: Callable[[], T]) -> T | None:
+    """`load()`, or None with its problem lines appended to `problems` when it raises a `PalletpilotError`.
+
+    How a command checks all of its inputs before it starts and reports every problem at once:
+    collect each input, then `raise_problems`.
+    """
+    try:
+        return load()
+    except PalletpilotError as exc:
+        problems.extend(p for p in exc.problems if p not in problems)
+        return None
+
+
+def raise_problems(problems: list[str], error: type[PalletpilotError] = PalletpilotError) -> None:
+    """Raise `error` with every line of `problems` (message: the first and how many more); no-op when empty."""
+    if problems:
+        more = len(problems) - 1
+        raise error(problems[0] + (f" (and {more} more)" if more else ""), problems)

@@ -2,6 +2,9 @@
 
 Every package loads its files (maps, vehicle, forks, scenarios, missions) through `load_yaml_model`,
 so every bad file is reported the same way: `path: nodes[3].yaw_deg: Input should be a valid number`.
+Every schema derives from `FileModel` (unknown keys and NaN / infinities are errors); `read_text`
+refuses files that are too large or not UTF-8, `read_yaml` anchor bombs and deep nesting, and
+`parse_json` the NaN and Infinity that Python's json would accept.
 It lives in `geometry` because that is the one package all others may import.
 
 `bundled_path("missions", "warehouse.yaml")` is a file shipped inside the installed package (the
@@ -23,14 +26,23 @@ import os
 import tempfile
 from importlib import resources
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from palletpilot.geometry.errors import OutputError, PalletpilotError
 
 M = TypeVar("M", bound=BaseModel)
+
+MAX_TEXT_BYTES = 256 * 2**20
+"""The largest text input read (bytes): a 100,000-node map is about 20 MB."""
+MAX_ITEMS = 10_000_000
+"""The most values (scalars, lists and mappings) a YAML or JSON file may expand into."""
+MAX_DEPTH = 100
+"""The deepest nesting of lists and mappings a YAML or JSON file may have."""
+
+_SafeLoader: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 # Keeps files extracted by `importlib.resources.as_file` (a zipped install) until the process ends.
 _RESOURCES = contextlib.ExitStack()
@@ -43,19 +55,103 @@ def bundled_path(*parts: str) -> Path:
     return Path(_RESOURCES.enter_context(resources.as_file(ref)))
 
 
-def read_yaml(path: str | Path, error: type[PalletpilotError] = PalletpilotError) -> object:
-    """Parse a YAML file; a missing file or a syntax error raises `error` with one line naming the file."""
+class FileModel(BaseModel):
+    """Base of every file schema: unknown keys are errors, and so are NaN and infinities.
+
+    A subclass adds to the config (`model_config = ConfigDict(frozen=True)`); pydantic merges it.
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def read_text(
+    path: str | Path, error: type[PalletpilotError] = PalletpilotError, max_bytes: int = MAX_TEXT_BYTES
+) -> str:
+    """A UTF-8 text file (a byte-order mark is allowed); unreadable, oversized or not UTF-8: `error`, one line."""
     path = Path(path)
+    if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO or device would block or never end
+        raise error(f"{path}: cannot read: not a regular file")
     try:
-        text = path.read_text()
+        with path.open("rb") as f:
+            data = f.read(max_bytes + 1)
     except OSError as exc:
         raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:
+        raise error(f"{path}: too large: more than {max_bytes / 2**20:.0f} MiB (limit {max_bytes} bytes)")
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}: " if mark is not None else ""
-        raise error(f"{path}: not valid YAML: {where}{getattr(exc, 'problem', exc)}") from None
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise error(
+            f"{path}: not UTF-8 text: byte 0x{data[exc.start]:02x} at offset {exc.start} (line {line}); "
+            "save the file as UTF-8"
+        ) from None
+
+
+def _yaml_line(exc: yaml.YAMLError) -> str:
+    mark = getattr(exc, "problem_mark", None)
+    where = f"line {mark.line + 1}: " if mark is not None else ""
+    return f"{where}{getattr(exc, 'problem', None) or exc}"
+
+
+def read_yaml(path: str | Path, error: type[PalletpilotError] = PalletpilotError) -> object:
+    """Parse a YAML file (JSON for a `.json` file); every problem raises `error` with one line naming the file.
+
+    Problems: unreadable, larger than `MAX_TEXT_BYTES`, not UTF-8, a syntax error, a Python tag
+    (`!!python/...`: never executed), or more than `MAX_ITEMS` values once anchors are expanded.
+    YAML goes through libyaml (`CSafeLoader`) where PyYAML has it, about 5x faster than pure Python.
+    """
+    path = Path(path)
+    text = read_text(path, error)
+    if path.suffix.lower() == ".json":
+        data = parse_json(text, str(path), error)
+    else:
+        try:
+            data = yaml.load(text, Loader=_SafeLoader)  # a safe loader: never builds Python objects
+        except yaml.YAMLError as exc:
+            raise error(f"{path}: not valid YAML: {_yaml_line(exc)}") from None
+        except RecursionError:
+            raise error(f"{path}: not valid YAML: nested too deeply") from None
+    check_size(data, str(path), error)
+    return data
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"{name} is not a number in JSON (RFC 8259)")
+
+
+def parse_json(text: str, where: str, error: type[PalletpilotError] = PalletpilotError) -> object:
+    """Strict JSON (RFC 8259: no NaN or Infinity); a syntax error raises `error` naming `where` and the line."""
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise error(f"{where}: not valid JSON: line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    except ValueError as exc:
+        raise error(f"{where}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise error(f"{where}: not valid JSON: nested too deeply") from None
+
+
+def check_size(data: object, where: str, error: type[PalletpilotError] = PalletpilotError) -> None:
+    """Refuse parsed data with more than `MAX_ITEMS` values or nested deeper than `MAX_DEPTH`.
+
+    YAML anchors make a small file expand into a huge document ("billion laughs"); the count
+    follows every reference, and stops as soon as the limit is passed.
+    """
+    if not isinstance(data, (dict, list)):
+        return
+    count = 1
+    stack: list[tuple[object, int]] = [(data, 0)]
+    while stack:
+        item, depth = stack.pop()
+        values = list(item.values()) if isinstance(item, dict) else item
+        assert isinstance(values, list)
+        count += len(values)
+        if count > MAX_ITEMS:
+            raise error(f"{where}: too large: more than {MAX_ITEMS} values (after expanding YAML anchors)")
+        if depth >= MAX_DEPTH:
+            raise error(f"{where}: nested deeper than {MAX_DEPTH} levels")
+        stack.extend((v, depth + 1) for v in values if isinstance(v, (dict, list)))
 
 
 def validation_lines(prefix: str, exc: ValidationError) -> list[str]:
@@ -79,7 +175,7 @@ def validate_model(data: object, model: type[M], where: str, error: type[Palletp
 
 
 def load_yaml_model(path: str | Path, model: type[M], error: type[PalletpilotError] = PalletpilotError) -> M:
-    """Read a YAML file and validate it against `model`, raising `error` (one line per problem)."""
+    """Read a YAML (or `.json`) file and validate it against `model`, raising `error` (one line per problem)."""
     return validate_model(read_yaml(path, error), model, str(path), error)
 
 
@@ -88,6 +184,8 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
     path = Path(path)
     payload = data.encode() if isinstance(data, str) else data
     tmp: str | None = None
+    if path.exists() and not path.is_file():  # never rename over a folder or a device (/dev/full)
+        raise OutputError(f"{path}: cannot write: {'a folder' if path.is_dir() else 'not a regular file'}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -105,6 +203,41 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
     return path
+
+
+def output_problems(path: str | Path, suffixes: tuple[str, ...] = (), folder: bool = False) -> list[str]:
+    """What stops `path` from being written, checked before any work starts; [] when it can be.
+
+    A file output must not be a folder or a device, must end in one of `suffixes` (when given, e.g.
+    `(".png",)`), and its nearest existing parent must be a writable folder (missing folders are
+    created). `folder=True`: `path` is a report folder, which may exist as a folder.
+    """
+    path = Path(path)
+    if not str(path):
+        return ["empty path"]
+    if folder:
+        if path.exists() and not path.is_dir():
+            return [f"{path}: not a folder"]
+    else:
+        if path.is_dir():
+            return [f"{path}: is a folder; give a file name"]
+        if path.exists() and not path.is_file():
+            return [f"{path}: not a regular file (a device or socket); give a file name"]
+        if suffixes and path.suffix.lower() not in suffixes:
+            return [f"{path}: must end in {' or '.join(suffixes)}"]
+    parent = path if folder else path.parent
+    parent = Path(os.path.abspath(parent))
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        return [f"{path}: {parent} is a file, not a folder"]
+    target = path if folder and path.exists() else parent
+    if not os.access(target, os.W_OK | os.X_OK):
+        return [f"{path}: cannot write: {target} is not writable (permission or a read-only file system)"]
+    if not folder and path.exists() and not os.access(path, os.W_OK):
+        # rename replaces even a read-only file; say so rather than silently overwriting it
+        return [f"{path}: cannot write: the file is read-only"]
+    return []
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -36,11 +36,12 @@ import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 from scipy import ndimage, special
 from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE3
+from palletpilot.geometry.fileio import FileModel
 from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.sim.world import LabeledMesh, Texture, o3d_tensor
 
@@ -105,21 +106,21 @@ class CameraModel:
         return cls(width, height, d435_color_intrinsics(width, height), d435_depth_focal_px(width, height))
 
 
-class CameraNoise(BaseModel):
+class CameraNoise(FileModel):
     """Sensor imperfections; `CameraNoise.off()` is an ideal camera. Scenario files may carry this block."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True)
 
     depth_noise: bool = True
-    disparity_sigma_px: float = Field(D435_SUBPIXEL_PX, ge=0, description="stereo subpixel error (px)")
-    baseline_m: float = Field(D435_BASELINE_M, gt=0)
-    depth_unit_m: float = Field(0.001, ge=0, description="depth quantisation (m); 0 = none")
+    disparity_sigma_px: float = Field(D435_SUBPIXEL_PX, ge=0, le=5.0, description="stereo subpixel error (px)")
+    baseline_m: float = Field(D435_BASELINE_M, gt=0, le=1.0)
+    depth_unit_m: float = Field(0.001, ge=0, le=0.1, description="depth quantisation (m); 0 = none")
     invalid_rate: float = Field(0.005, ge=0, le=1, description="share of pixels randomly without depth")
     flying_pixel_rate: float = Field(0.5, ge=0, le=1, description="share of depth-edge pixels that fly")
-    edge_jump_rel: float = Field(0.08, gt=0, description="depth jump (fraction of z) that makes an edge")
+    edge_jump_rel: float = Field(0.08, gt=0, le=1.0, description="depth jump (fraction of z) that makes an edge")
     label_noise: bool = False
-    label_noise_px: int = Field(2, ge=0, description="max boundary dilation / erosion (px)")
-    rgb_sigma: float = Field(2.0, ge=0, description="RGB sensor noise std (8-bit levels)")
+    label_noise_px: int = Field(2, ge=0, le=50, description="max boundary dilation / erosion (px)")
+    rgb_sigma: float = Field(2.0, ge=0, le=100.0, description="RGB sensor noise std (8-bit levels)")
     lighting_variation: bool = True
 
     @classmethod

@@ -45,9 +45,10 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from palletpilot.geometry import SE2
+from palletpilot.geometry.fileio import FileModel
 from palletpilot.perception import errors as _perception_errors
 from palletpilot.perception.errors import PerceptionError
 
@@ -61,18 +62,18 @@ CameraError: type[PerceptionError] = getattr(_perception_errors, "CameraError", 
 _EPS = 1e-9  # s: ticks at 0.05 s accumulate rounding error; a time within this of a deadline has reached it
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Strict(FileModel):
+    """A file schema (unknown keys, NaN and infinities are errors)."""
 
 
 class _Fault(_Strict):
     """Trigger fields every fault has: exactly one of `at_s` or `state` (with `after_s`, `task`)."""
 
-    at_s: float | None = Field(None, ge=0.0, allow_inf_nan=False)
+    at_s: float | None = Field(None, ge=0.0)
     """Simulated time (s since the start of the run) at which the fault fires."""
     state: str | None = Field(None, pattern=r"^[a-z][a-z0-9_]*$")
     """Name of the task state whose start arms the fault (e.g. `calibrate`, `lift`)."""
-    after_s: float = Field(0.0, ge=0.0, allow_inf_nan=False)
+    after_s: float = Field(0.0, ge=0.0)
     """Delay (s) after `state` starts; only with `state`."""
     task: int | None = Field(None, ge=0)
     """Task index whose `state` counts; only with `state` (default: the first start in any task)."""
@@ -110,7 +111,7 @@ class _Fault(_Strict):
 
 
 class _Timed(_Fault):
-    duration_s: float = Field(gt=0.0, allow_inf_nan=False)
+    duration_s: float = Field(gt=0.0)
     """How long (s, simulated) the fault stays active."""
 
     @property
@@ -142,7 +143,7 @@ class PerceptionSlow(_Fault):
     """The next `count` perception calls take `delay_s` (s) longer."""
 
     kind: Literal["perception_slow"]
-    delay_s: float = Field(gt=0.0, allow_inf_nan=False)
+    delay_s: float = Field(gt=0.0)
     count: int = Field(1, ge=1)
 
 
@@ -152,10 +153,10 @@ class LocalizationJump(_Fault):
     for `duration_s` (s; default: until the end of the run)."""
 
     kind: Literal["localization_jump"]
-    dx: float = Field(0.0, allow_inf_nan=False)
-    dy: float = Field(0.0, allow_inf_nan=False)
-    dyaw_deg: float = Field(0.0, allow_inf_nan=False)
-    duration_s: float | None = Field(None, gt=0.0, allow_inf_nan=False)
+    dx: float = Field(0.0)
+    dy: float = Field(0.0)
+    dyaw_deg: float = Field(0.0)
+    duration_s: float | None = Field(None, gt=0.0)
 
     @property
     def duration(self) -> float | None:

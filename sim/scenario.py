@@ -45,12 +45,12 @@ from __future__ import annotations
 import itertools
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from palletpilot.geometry import SE3, PalletpilotError, wrap_angle
-from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.sim.camera import CameraNoise, camera_mount_pose
 from palletpilot.sim.faults import FaultSpec
 
@@ -59,19 +59,27 @@ class SimError(PalletpilotError):
     """A bad scenario or an impossible simulator request; the message names the file or object."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+MAX_COORD_M = 10_000.0
+"""World coordinates (m) in a scenario lie within +-10 km, as map coordinates do."""
+MAX_MISPLACEMENT_M = 2.0
+"""A pallet placed at a node is at most this far off it (m); further, place it free with x and y."""
+Coordinate = Annotated[float, Field(ge=-MAX_COORD_M, le=MAX_COORD_M)]
+BoxSide = Annotated[float, Field(gt=0.0, le=20.0)]
+
+
+class _Strict(FileModel):
+    """A file schema (unknown keys, NaN and infinities are errors)."""
 
 
 class CameraMount(_Strict):
     """Camera pose on the fork carriage at lift height 0, in forklift-frame terms."""
 
-    x: float = -0.10
-    y: float = 0.0
-    z: float = Field(0.45, gt=0.0)
+    x: float = Field(-0.10, ge=-3.0, le=3.0)
+    y: float = Field(0.0, ge=-2.0, le=2.0)
+    z: float = Field(0.45, gt=0.0, le=3.0)
     tilt_deg: float = Field(20.0, ge=0.0, le=89.0)
-    pan_deg: float = 0.0
-    roll_deg: float = 0.0
+    pan_deg: float = Field(0.0, ge=-90.0, le=90.0)
+    roll_deg: float = Field(0.0, ge=-180.0, le=180.0)
 
     def T_forklift_camera(self) -> SE3:
         """The mount as `T_forklift_camera` (optical frame: x right, y down, z out of the lens).
@@ -91,8 +99,8 @@ class CameraMount(_Strict):
 class MountPerturbation(_Strict):
     """1-sigma random change of the mount per run."""
 
-    xyz_sigma: float = Field(0.0, ge=0.0)
-    angle_sigma_deg: float = Field(0.0, ge=0.0)
+    xyz_sigma: float = Field(0.0, ge=0.0, le=0.1)
+    angle_sigma_deg: float = Field(0.0, ge=0.0, le=10.0)
 
 
 class CameraSpec(_Strict):
@@ -108,9 +116,9 @@ class CameraSpec(_Strict):
 class NoiseSpec(_Strict):
     """Localization and actuation noise (camera noise is `camera.noise`); off by default."""
 
-    localization_xy_sigma: float = Field(0.0, ge=0.0)
-    localization_yaw_sigma_deg: float = Field(0.0, ge=0.0)
-    slip_sigma: float = Field(0.0, ge=0.0)
+    localization_xy_sigma: float = Field(0.0, ge=0.0, le=1.0)
+    localization_yaw_sigma_deg: float = Field(0.0, ge=0.0, le=30.0)
+    slip_sigma: float = Field(0.0, ge=0.0, le=0.5)
 
 
 class PalletPlacement(_Strict):
@@ -118,12 +126,12 @@ class PalletPlacement(_Strict):
     free on the floor at (x, y, yaw_deg): its pallet frame (the entry face's centre) in the world."""
 
     node: str | None = None
-    dx: float = 0.0
-    dy: float = 0.0
-    dyaw_deg: float = 0.0
-    x: float | None = None
-    y: float | None = None
-    yaw_deg: float = 0.0
+    dx: float = Field(0.0, ge=-MAX_MISPLACEMENT_M, le=MAX_MISPLACEMENT_M)
+    dy: float = Field(0.0, ge=-MAX_MISPLACEMENT_M, le=MAX_MISPLACEMENT_M)
+    dyaw_deg: float = Field(0.0, ge=-180.0, le=180.0)
+    x: float | None = Field(None, ge=-MAX_COORD_M, le=MAX_COORD_M)
+    y: float | None = Field(None, ge=-MAX_COORD_M, le=MAX_COORD_M)
+    yaw_deg: float = Field(0.0, ge=-360.0, le=360.0)
     loaded: bool = False
 
     @model_validator(mode="after")
@@ -144,12 +152,12 @@ class ClutterSpec(_Strict):
     end; with `repeat` it walks back and forth for ever."""
 
     kind: Literal["person", "box"]
-    x: float
-    y: float
-    yaw_deg: float = 0.0
-    size: tuple[float, float, float] = (0.6, 0.4, 0.5)
-    path: list[tuple[float, float]] = []
-    speed: float = Field(1.0, gt=0.0, allow_inf_nan=False)
+    x: float = Field(ge=-MAX_COORD_M, le=MAX_COORD_M)
+    y: float = Field(ge=-MAX_COORD_M, le=MAX_COORD_M)
+    yaw_deg: float = Field(0.0, ge=-360.0, le=360.0)
+    size: tuple[BoxSide, BoxSide, BoxSide] = (0.6, 0.4, 0.5)
+    path: list[tuple[Coordinate, Coordinate]] = Field(default_factory=list, max_length=1000)
+    speed: float = Field(1.0, gt=0.0, le=3.0, description="walking speed (m/s)")
     repeat: bool = False
 
     @model_validator(mode="after")
@@ -190,15 +198,17 @@ class Scenario(_Strict):
     map: str
     forks: str = "forks.yaml"
     vehicle: str | None = None
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**64 - 1)
     start: str
     camera: CameraSpec = CameraSpec()
     noise: NoiseSpec = NoiseSpec()
     battery_level: float = Field(0.8, ge=0.0, le=1.0)  # state of charge at the start (with a battery model)
-    pallets: list[PalletPlacement] = []
-    clutter: list[ClutterSpec] = []
-    faults: list[FaultSpec] = []  # injected faults (sim.faults); none by default
+    pallets: list[PalletPlacement] = Field(default_factory=list, max_length=10_000)
+    clutter: list[ClutterSpec] = Field(default_factory=list, max_length=10_000)
+    faults: list[FaultSpec] = Field(default_factory=list, max_length=1000)  # injected faults (sim.faults)
     folder: Path = Field(Path("."), exclude=True)
+    source: str = Field("scenario", exclude=True)
+    """How messages name the scenario: its file, or `default warehouse of MISSION`."""
 
     def path(self, name: str) -> Path:
         """A file named in the scenario, resolved against the scenario's folder."""
@@ -209,4 +219,5 @@ def load_scenario(path: str | Path) -> Scenario:
     """Load a scenario file; every problem raises `SimError` naming the file and the field."""
     scenario = load_yaml_model(path, Scenario, SimError)
     scenario.folder = Path(path).parent
+    scenario.source = str(path)
     return scenario
