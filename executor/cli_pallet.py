@@ -1,10 +1,18 @@
-"""`palletpilot estimate-pallet FRAME.npz --calibration CALIB.json [--pallet eur|FILE.yaml] [--json]`.
+"""`palletpilot estimate-pallet FRAME.npz --calibration CALIB.json [--pallet P] [--vehicle V.yaml] [--json]`.
 
 Estimates the pose of the pallet in front of the forks from one frame bundle (`perception.pallet`).
 Without labels in the bundle the shipped segmentation model labels its RGB
-(`perception.segmentation`); without that module, labels are required. Errors are
-`PerceptionError`s (`PalletNotFound` when there is no pallet): the main CLI prints them as one line
-and exits 2.
+(`perception.segmentation`); without that module, labels are required.
+
+Every input is checked before any work starts, and every problem of every input is reported at once,
+one line each naming the file (and field), exit code 2: the frame bundle (`perception.frames.load_bundle`:
+a damaged or oversized archive, bad arrays, an implausible K, depth or fork height, no labels and no
+rgb), the calibration (`perception.calibration_io.load_calibration`), the pallet type
+(`perception.specs.pallet_type`) and the vehicle file. The fork height is checked against any mast's
+range (`perception.frames.FORK_HEIGHT_RANGE_M`); with `--vehicle` against that truck's mast
+(`mast.min_height` .. `mast.max_height`), since perception cannot read vehicle files itself.
+Estimation failures are `PerceptionError`s (`PalletNotFound` when there is no pallet, naming the
+frame): the main CLI prints them as one line and exits 2.
 
 Registered by `executor.cli` through `add_parsers(subparsers)`.
 """
@@ -16,6 +24,7 @@ import importlib
 import json
 import math
 
+from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import pallet_type
@@ -32,20 +41,33 @@ def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
             f"{where}: labels: missing, and no segmentation model is available (labels are required)"
         ) from None
     if frame.rgb is None:
-        raise PerceptionError(f"{where}: labels: missing, and there is no rgb to segment")
+        raise PerceptionError(f"{where}: labels: missing, and there is no rgb to segment them from")
     return seg.ensure_labels(frame, seg.OnnxSegmenter(seg.DEFAULT_MODEL))
 
 
 def cmd_estimate_pallet(args: argparse.Namespace) -> int:
-    """Estimate the pallet pose in one frame bundle and print it."""
+    """Check every input, then estimate the pallet pose in one frame bundle and print it."""
     from palletpilot.perception.calibration_io import load_calibration
     from palletpilot.perception.frames import load_bundle
     from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
 
-    frame = _with_labels(load_bundle(args.frame), args.frame)
-    calibration = load_calibration(args.calibration)
+    problems: list[str] = []
+    mast_range_m: tuple[float, float] | None = None
+    if args.vehicle is not None:
+        from palletpilot.control.vehicle import load_vehicle
+
+        vehicle = collect(problems, lambda: load_vehicle(args.vehicle))
+        if vehicle is not None:
+            mast_range_m = (vehicle.mast.min_height, vehicle.mast.max_height)
+    frame = collect(problems, lambda: load_bundle(args.frame, mast_range_m, need_labels=True))
+    calibration = collect(problems, lambda: load_calibration(args.calibration))
+    pallet = collect(problems, lambda: pallet_type(args.pallet))
+    raise_problems(problems, PerceptionError)
+    assert frame is not None and calibration is not None and pallet is not None
+
+    frame = _with_labels(frame, args.frame)
     try:
-        estimate = estimate_pallet(frame, calibration, pallet_type(args.pallet))
+        estimate = estimate_pallet(frame, calibration, pallet)
     except PalletNotFound as exc:  # name the frame in the one-line message
         raise PalletNotFound(exc.reason, exc.detail, where=args.frame) from None
     doc = estimate.to_json()
@@ -66,9 +88,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     """Register `estimate-pallet` on the `palletpilot` sub-command parser."""
     p = subparsers.add_parser("estimate-pallet", help="estimate the pallet pose in a frame bundle (.npz)")
     p.add_argument("frame", metavar="FRAME.npz")
-    p.add_argument(
-        "--calibration", required=True, metavar="CALIB.json", help="output of `palletpilot calibrate --json`"
-    )
+    p.add_argument("--calibration", required=True, metavar="CALIB.json", help="output of `palletpilot calibrate --out`")
     p.add_argument("--pallet", default="eur", help="pallet type: eur (default) or a pallet type YAML file")
+    p.add_argument(
+        "--vehicle",
+        metavar="V.yaml",
+        help="vehicle file: the frame's fork height must lie within its mast's range (default: any mast's, 0..20 m)",
+    )
     p.add_argument("--json", action="store_true", help="print T_forklift_pallet, x_m, y_m, z_m, yaw_deg, spread")
     p.set_defaults(func=cmd_estimate_pallet)

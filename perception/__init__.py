@@ -2,7 +2,10 @@
 
 Public API:
 - `perception.frames`: `FrameBundle` (depth m, K, labels, rgb, fork_height, simulator-only `truth`),
-  `save_bundle`, `load_bundle` (.npz, ARCHITECTURE.md), `SemanticClass` (the paper's ten ids, 255 unlabeled).
+  `save_bundle`, `load_bundle` / `load_bundles` (.npz, ARCHITECTURE.md), `SemanticClass` (the paper's ten
+  ids, 255 unlabeled) and the bundle limits, re-exported from `perception.bundle_contract` (the data
+  contract: class ids, keys, limits and the checks of every field) and `perception.bundle_archive`
+  (reading an untrusted .npz: zip directory and .npy headers checked before any data is unpacked).
 - `perception.specs`: `ForkGeometry` / `load_forks` (forks file), `PalletType` (EUR/EPAL by default, its
   boards and blocks as boxes in the pallet frame; `pallet_type("eur" or FILE.yaml)`),
   `pallet_pose_at_node` / `node_pose_for_pallet` (pallet node <-> `T_world_pallet`, entry face
@@ -12,7 +15,10 @@ Public API:
   `perception.calibration_io`: `Calibration` and its JSON; `perception.view`: `pickup_view` (does a
   mount show the entry face and a load at the Pickup's distances).
 - `perception.pallet`: `estimate_pallet` (`T_forklift_pallet` / `T_world_pallet` with a spread from one
-  labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `PalletNotFound` (reason);
+  labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `PalletNotFound` (reason),
+  `PalletEstimate`, `PalletEstimatorConfig`; its pieces: `perception.pallet_estimate` (tuning, result,
+  failure, fusion), `perception.pallet_face` (rays and the entry-face plane), `perception.pallet_model`
+  (the pallet model and its scores, the pocket check), `perception.pallet_deck` (yaw from the deck);
   `perception.alignment`: `AlignmentTolerances`, `check_alignment` (against the pallet node).
 - `perception.segmentation`: `SegmentationService`, `OnnxSegmenter` (the shipped `DEFAULT_MODEL`),
   `GroundTruthSegmenter`, `evaluate_segmenter`, `SegmentationScore` (pooled per-class IoU),

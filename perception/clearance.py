@@ -115,7 +115,7 @@ def check_volume(frame: FrameBundle, calibration: Calibration, volume: Volume) -
     z = depth[rows, cols].astype(np.float64)
     yc = (rows - K[1, 2]) / K[1, 1]
     xc = ((cols - K[0, 2]) - K[0, 1] * yc) / K[0, 0]
-    # Element-wise (no BLAS product): see `perception.pallet._rays`.
+    # Element-wise (no BLAS product): see `perception.pallet_face._rays`.
     points = z[:, None] * (xc[:, None] * R[:, 0] + yc[:, None] * R[:, 1] + R[:, 2]) + t
     inside = volume.contains(points)
     count = int(inside.sum())

@@ -13,128 +13,101 @@ Data contract (ARCHITECTURE.md), all in the camera's optical frame (x right, y d
   `T_forklift_camera_true`, `T_forklift_pallet_true`, 4 x 4 float64). Perception never reads them;
   they exist so tests and benchmarks can score estimates against the truth.
 
-`save_bundle` / `load_bundle` store a bundle as an `.npz` with exactly these keys; `load_bundle`
-validates every key and raises `PerceptionError` with one line naming the file and the bad key.
+`save_bundle` / `load_bundle` store a bundle as an `.npz` with exactly these keys.
+
+Public API: `FrameBundle`, `save_bundle`, `load_bundle`, `load_bundles`, and re-exported from the
+modules below (import them from here): `SemanticClass`, `BUNDLE_KEYS`, `TRUTH_SUFFIX` and the limits
+(`MAX_IMAGE_SIDE`, `MAX_DEPTH_M`, `FOCAL_RANGE`, `PIXEL_ASPECT_RANGE`, `MAX_SKEW`,
+`FORK_HEIGHT_RANGE_M`, `FORK_HEIGHT_TOLERANCE_M`, `MAX_TRUTH_ELEMENTS`, `MAX_BUNDLE_FILE_BYTES`,
+`MAX_BUNDLE_BYTES`, `MAX_MEMBERS`, `MAX_HEADER_BYTES`).
+
+Every bundle is checked, however it was made (`FrameBundle.__post_init__`, the checks in
+`perception.bundle_contract`): dtypes and shapes, image size, depth in metres, a plausible pinhole K,
+known class ids, a plausible fork height. A bundle file may come from anywhere (a camera, a
+colleague, a damaged disk, someone hostile), so `load_bundle` reads it with
+`perception.bundle_archive`: the zip directory and every `.npy` header are checked against the limits
+before a single array is decompressed, object arrays (pickles) are never loaded, and a damaged archive
+is `FILE: corrupt frame bundle: ...`. Every problem is one line that starts with the file's path
+(`FILE: KEY: problem`), and every problem of a file is reported (`PerceptionError.problems`);
+`load_bundles` reports every bad file of a list at once.
+
+The fork height is checked against the generic `FORK_HEIGHT_RANGE_M` unless the caller knows the
+truck and passes its mast's range (`mast_range_m` of `load_bundle` / `load_bundles`, e.g.
+`palletpilot estimate-pallet --vehicle V.yaml`).
 """
 
 from __future__ import annotations
 
 import io
-import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterable
+from contextvars import ContextVar
 from dataclasses import dataclass, field
-from enum import IntEnum
 from pathlib import Path
 
 import numpy as np
 
 from palletpilot.geometry.fileio import write_atomic
+from palletpilot.perception.bundle_archive import (
+    MAX_BUNDLE_BYTES,
+    MAX_BUNDLE_FILE_BYTES,
+    MAX_HEADER_BYTES,
+    MAX_MEMBERS,
+    _read_arrays,
+)
+from palletpilot.perception.bundle_contract import (
+    BUNDLE_KEYS,
+    FOCAL_RANGE,
+    FORK_HEIGHT_RANGE_M,
+    FORK_HEIGHT_TOLERANCE_M,
+    MAX_DEPTH_M,
+    MAX_IMAGE_SIDE,
+    MAX_SKEW,
+    MAX_TRUTH_ELEMENTS,
+    PIXEL_ASPECT_RANGE,
+    TRUTH_SUFFIX,
+    SemanticClass,
+    _check_bundle,
+    _error,
+)
 from palletpilot.perception.errors import PerceptionError
 
+__all__ = [
+    "BUNDLE_KEYS",
+    "FOCAL_RANGE",
+    "FORK_HEIGHT_RANGE_M",
+    "FORK_HEIGHT_TOLERANCE_M",
+    "MAX_BUNDLE_BYTES",
+    "MAX_BUNDLE_FILE_BYTES",
+    "MAX_DEPTH_M",
+    "MAX_HEADER_BYTES",
+    "MAX_IMAGE_SIDE",
+    "MAX_MEMBERS",
+    "MAX_SKEW",
+    "MAX_TRUTH_ELEMENTS",
+    "PIXEL_ASPECT_RANGE",
+    "TRUTH_SUFFIX",
+    "FrameBundle",
+    "SemanticClass",
+    "load_bundle",
+    "load_bundles",
+    "save_bundle",
+]
 
-class SemanticClass(IntEnum):
-    """The ten semantic classes of the paper, ids fixed, plus 255 for unlabeled pixels."""
-
-    DRIVABLE = 0
-    VERTICAL = 1
-    OTHER_OBJECT = 2
-    OTHER_FORKLIFT = 3
-    OTHER_VEHICLE = 4
-    FORKS = 5
-    CARGO = 6
-    PALLET_EMPTY = 7
-    PALLET_FULL = 8
-    PERSON = 9
-    UNLABELED = 255
-
-
-BUNDLE_KEYS = ("depth", "K", "labels", "rgb", "fork_height")
-"""Keys a bundle file may hold besides truth keys (which end in `TRUTH_SUFFIX`)."""
-TRUTH_SUFFIX = "_true"
-_VALID_LABELS = np.array([int(c) for c in SemanticClass], dtype=np.uint8)
-
-
-def _check_bundle(
-    depth: object,
-    K: object,
-    labels: object,
-    rgb: object,
-    fork_height: object,
-    truth: Mapping[str, object],
-    where: str,
-) -> None:
-    """Raise `PerceptionError` (`where: key: problem`) for the first entry that breaks the contract."""
-
-    def fail(key: str, problem: str) -> None:
-        raise PerceptionError(f"{where}: {key}: {problem}")
-
-    def array(key: str, value: object) -> np.ndarray:
-        if not isinstance(value, np.ndarray):
-            fail(key, f"expected a numpy array, got {type(value).__name__}")
-        return value  # type: ignore[return-value]
-
-    d = array("depth", depth)
-    if d.dtype != np.float32:
-        fail("depth", f"dtype must be float32 (metres), got {d.dtype}")
-    if d.ndim != 2 or d.shape[0] == 0 or d.shape[1] == 0:
-        fail("depth", f"shape must be (H, W), got {d.shape}")
-    if np.isinf(d).any():
-        fail("depth", "contains inf (use 0 or NaN for no data)")
-    if (d < 0).any():  # NaN compares False: allowed
-        fail("depth", f"contains negative depths (min {float(np.nanmin(d)):.4g} m)")
-    shape = d.shape
-
-    k = array("K", K)
-    if k.dtype != np.float64:
-        fail("K", f"dtype must be float64, got {k.dtype}")
-    if k.shape != (3, 3):
-        fail("K", f"shape must be (3, 3), got {k.shape}")
-    if not np.all(np.isfinite(k)):
-        fail("K", "has non-finite entries")
-    if not (k[0, 0] > 0 and k[1, 1] > 0) or not np.allclose(k[2], [0.0, 0.0, 1.0]) or k[1, 0] != 0:
-        fail("K", f"is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0: {k.tolist()}")
-
-    if labels is not None:
-        lab = array("labels", labels)
-        if lab.dtype != np.uint8:
-            fail("labels", f"dtype must be uint8, got {lab.dtype}")
-        if lab.shape != shape:
-            fail("labels", f"shape {lab.shape} does not match depth {shape}")
-        present = np.flatnonzero(np.bincount(lab.ravel(), minlength=256))
-        bad = np.setdiff1d(present, _VALID_LABELS)
-        if bad.size:
-            fail("labels", f"unknown class ids {bad[:5].tolist()} (valid: 0..9 and 255)")
-
-    if rgb is not None:
-        im = array("rgb", rgb)
-        if im.dtype != np.uint8:
-            fail("rgb", f"dtype must be uint8, got {im.dtype}")
-        if im.shape != (*shape, 3):
-            fail("rgb", f"shape must be {(*shape, 3)} to match depth, got {im.shape}")
-
-    if isinstance(fork_height, np.ndarray):
-        if fork_height.shape != () or fork_height.dtype.kind not in "fiu":
-            fail("fork_height", f"must be a scalar number, got shape {fork_height.shape} dtype {fork_height.dtype}")
-        fork_height = float(fork_height)
-    if not isinstance(fork_height, (int, float)) or isinstance(fork_height, bool) or not np.isfinite(fork_height):
-        fail("fork_height", f"must be a finite number (m), got {fork_height!r}")
-
-    for key, value in truth.items():
-        if not key.endswith(TRUTH_SUFFIX):
-            fail(key, f"truth keys must end in '{TRUTH_SUFFIX}'")
-        arr = array(key, value)
-        if arr.dtype.kind not in "fiub":
-            fail(key, f"truth arrays must be numeric, got dtype {arr.dtype}")
-        if key.startswith("T_") and (arr.shape != (4, 4) or not np.all(np.isfinite(arr))):
-            fail(key, f"a transform must be a finite 4 x 4 matrix, got shape {arr.shape}")
+# Where a bundle is being checked (a file path, or "FrameBundle" for one built in memory) and the
+# mast's range: `load_bundle` sets them for the `FrameBundle` it builds, so that its constructor's
+# one validation pass names the file.
+_CHECK_AS: ContextVar[tuple[str, tuple[float, float] | None]] = ContextVar(
+    "palletpilot_frame_check_as", default=("FrameBundle", None)
+)
 
 
 @dataclass(frozen=True, eq=False)
 class FrameBundle:
     """One aligned RGB-D frame in the camera's optical frame (see the module docstring).
 
-    Construction validates the contract and raises `PerceptionError` naming the bad field.
-    Compared by identity (arrays have no single truth value).
+    Construction validates the contract and raises `PerceptionError` with one line per bad field
+    (`FrameBundle: K: ...`; `load_bundle` names the file instead). Compared by identity (arrays have
+    no single truth value).
     """
 
     depth: np.ndarray
@@ -147,7 +120,8 @@ class FrameBundle:
     """Capture time (s, on the clock of whoever grabbed it: the runner's) when known; not stored in `.npz`."""
 
     def __post_init__(self) -> None:
-        _check_bundle(self.depth, self.K, self.labels, self.rgb, self.fork_height, self.truth, "FrameBundle")
+        where, mast_range_m = _CHECK_AS.get()
+        _check_bundle(self.depth, self.K, self.labels, self.rgb, self.fork_height, self.truth, where, mast_range_m)
         object.__setattr__(self, "fork_height", float(self.fork_height))
 
     @property
@@ -185,42 +159,57 @@ def save_bundle(path: str | Path, bundle: FrameBundle) -> Path:
     return write_atomic(path, buf.getvalue())  # OutputError (one line) when it cannot be written
 
 
-def load_bundle(path: str | Path) -> FrameBundle:
-    """Read and validate a bundle `.npz`; any problem raises `PerceptionError` naming the file and key."""
-    path = Path(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise PerceptionError(f"{path}: no such file") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise PerceptionError(f"{path}: not a readable .npz frame bundle: {exc}") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise PerceptionError(f"{path}: not an .npz archive (a single .npy array)")
-    try:
-        with data:
-            arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise PerceptionError(f"{path}: not a readable .npz frame bundle: {exc}") from None
+def load_bundle(
+    path: str | Path, mast_range_m: tuple[float, float] | None = None, need_labels: bool = False
+) -> FrameBundle:
+    """Read and validate a bundle `.npz` (module docstring); problems raise `PerceptionError`, one line each.
 
-    for key in ("depth", "K"):
-        if key not in arrays:
-            raise PerceptionError(f"{path}: {key}: missing (a bundle needs depth and K)")
-    truth = {}
-    for key in arrays:
-        if key in BUNDLE_KEYS:
-            continue
-        if not key.endswith(TRUTH_SUFFIX):
-            raise PerceptionError(
-                f"{path}: {key}: unknown key (expected {', '.join(BUNDLE_KEYS)} or truth keys ending in '_true')"
-            )
-        truth[key] = arrays[key]
-    fork_height = arrays.get("fork_height", np.array(0.0))
-    _check_bundle(arrays["depth"], arrays["K"], arrays.get("labels"), arrays.get("rgb"), fork_height, truth, str(path))
-    return FrameBundle(
-        depth=arrays["depth"],
-        K=arrays["K"],
-        labels=arrays.get("labels"),
-        rgb=arrays.get("rgb"),
-        fork_height=float(fork_height),
-        truth=truth,
-    )
+    `mast_range_m`: (lowest, highest) lift height (m) of the truck's mast when the caller knows the
+    vehicle; without it the fork height is checked against `FORK_HEIGHT_RANGE_M`. `need_labels`: the
+    caller needs labels (calibration, pallet estimation), so a bundle with neither labels nor rgb
+    to segment them from is refused too.
+    """
+    path = Path(path)
+    arrays = _read_arrays(path)
+    truth = {key: value for key, value in arrays.items() if key.endswith(TRUTH_SUFFIX)}
+    fork_height = arrays.get("fork_height")
+    token = _CHECK_AS.set((str(path), mast_range_m))
+    try:
+        bundle = FrameBundle(
+            depth=arrays["depth"],
+            K=arrays["K"],
+            labels=arrays.get("labels"),
+            rgb=arrays.get("rgb"),
+            fork_height=0.0 if fork_height is None else float(fork_height),
+            truth=truth,
+        )
+    finally:
+        _CHECK_AS.reset(token)
+    if need_labels and bundle.labels is None and bundle.rgb is None:
+        raise PerceptionError(f"{path}: labels: missing, and there is no rgb to segment them from")
+    return bundle
+
+
+def load_bundles(
+    paths: Iterable[str | Path], mast_range_m: tuple[float, float] | None = None, need_labels: bool = False
+) -> list[FrameBundle]:
+    """Load every bundle of a list (`load_bundle`); the problems of all bad files raise one `PerceptionError`.
+
+    Its `problems` hold one line per problem, each starting with its file's path; its message is the
+    first (with how many files are bad and how many more problems there are). No paths is an error too.
+    """
+    paths = list(paths)
+    if not paths:
+        raise PerceptionError("no frame bundles given")
+    bundles: list[FrameBundle] = []
+    problems: list[str] = []
+    bad_files = 0
+    for path in paths:
+        try:
+            bundles.append(load_bundle(path, mast_range_m, need_labels))
+        except PerceptionError as exc:
+            problems += exc.problems
+            bad_files += 1
+    if problems:
+        raise _error(problems, f"{bad_files} of {len(paths)} frame bundles are bad" if bad_files > 1 else "")
+    return bundles

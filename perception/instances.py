@@ -148,7 +148,7 @@ def _points(frame: FrameBundle, T_forklift_camera: SE3, rows: np.ndarray, cols: 
     yc = (rows - K[1, 2]) / K[1, 1]
     xc = ((cols - K[0, 2]) - K[0, 1] * yc) / K[0, 0]
     R, t = T_forklift_camera.R, T_forklift_camera.t
-    # Element-wise, not a BLAS product (see perception.pallet._rays: threaded BLAS after Open3D ray casting).
+    # Element-wise, not a BLAS product (see perception.pallet_face._rays: threaded BLAS after Open3D ray casting).
     return t + (xc * z)[:, None] * R[:, 0] + (yc * z)[:, None] * R[:, 1] + z[:, None] * R[:, 2]
 
 

@@ -6,34 +6,101 @@ Both are pydantic models in metres. Frames (ARCHITECTURE.md):
   y left, z up. A fork occupies x in [tip_x - length, tip_x], z in [h, h + thickness] at lift height h.
 - pallet frame: origin at the centre of the entry face on the pallet's underside, x into the pallet along
   the pockets, y left, z up. The pallet occupies x in [0, length], y in [-width/2, width/2], z in [0, height].
+
+Every dimension read from a file is checked against a plausible range (`FORK_RANGES_M`,
+`PALLET_RANGES_M`), and the message names the field, the range and the value
+(`forks.yaml: length: 30 m is outside 0.5..3 m (one fork blade, heel to tip)`); numbers must be
+numbers (a string or a boolean is refused), finite, and unknown keys are errors (`FileModel`). The
+fork tips must lie ahead of the truck and the heels near the forklift origin (`HEEL_X_RANGE_M`), so a
+tip far behind the truck or a fork kilometres long never reaches the calibration.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
 
 from palletpilot.geometry import SE2, SE3
-from palletpilot.geometry.fileio import load_yaml_model
+from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.perception.errors import PerceptionError
 
 _MM = 5e-4  # tolerance (m) when checking that dimensions add up
 
+_Number = Annotated[float, Field(strict=True)]
+"""A number in a file (an int or a float; finite by `FileModel`), never a string or a boolean."""
 
-class ForkGeometry(BaseModel):
+FORK_RANGES_M: dict[str, tuple[float, float, str]] = {
+    "length": (0.5, 3.0, "one fork blade, heel to tip"),
+    "width": (0.03, 0.4, "one fork, side to side"),
+    "thickness": (0.01, 0.2, "blade thickness"),
+    "inner_gap": (0.02, 2.0, "between the inner sides of the forks"),
+    "tip_x": (0.3, 4.0, "x of the fork tips ahead of the forklift origin"),
+}
+"""Plausible fork dimensions (m): (lowest, highest, what it is)."""
+HEEL_X_RANGE_M = (-1.0, 1.0)
+"""Where the fork heels (`tip_x - length`, m) may lie: at the carriage, near the forklift origin."""
+
+PALLET_RANGES_M: dict[str, tuple[float, float, str]] = {
+    "length": (0.3, 3.0, "along the pockets"),
+    "width": (0.3, 3.0, "the entry face"),
+    "height": (0.05, 0.5, "floor to deck top"),
+    "top_board_thickness": (0.005, 0.1, "deck boards"),
+    "top_board_widths": (0.02, 0.5, "each deck board"),
+    "cross_board_thickness": (0.005, 0.1, "cross boards"),
+    "block_height": (0.02, 0.3, "blocks"),
+    "block_length": (0.03, 1.0, "blocks along x"),
+    "block_columns": (0.02, 1.0, "each block column"),
+    "bottom_board_thickness": (0.005, 0.1, "bottom boards"),
+}
+"""Plausible pallet dimensions (m): (lowest, highest, what it is); tuples: each element."""
+
+
+def _out_of_range(value: float, lo: float, hi: float, what: str) -> PydanticCustomError:
+    """The error for a dimension outside its range: names the range and the value."""
+    return PydanticCustomError("out_of_range", f"{value:g} m is outside {lo:g}..{hi:g} m ({what})")
+
+
+def _check_ranges(
+    value: float | tuple[float, ...], info: ValidationInfo, ranges: dict[str, tuple[float, float, str]]
+) -> None:
+    """Raise `_out_of_range` when `value` (or an element of it) lies outside `ranges[field]`."""
+    assert info.field_name is not None
+    lo, hi, what = ranges[info.field_name]
+    for v in value if isinstance(value, tuple) else (value,):
+        if not lo <= v <= hi:
+            raise _out_of_range(v, lo, hi, what)
+
+
+class ForkGeometry(FileModel):
     """The two forks of the ego forklift (metres, forklift frame; see the module docstring)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True)
 
-    length: float = Field(gt=0, description="length of one fork blade along x (m)")
-    width: float = Field(gt=0, description="width of one fork along y (m)")
-    thickness: float = Field(gt=0, description="blade thickness along z (m)")
-    inner_gap: float = Field(gt=0, description="gap between the inner sides of the two forks (m)")
-    tip_x: float = Field(description="x of the fork tips in the forklift frame (m)")
+    length: _Number = Field(description="length of one fork blade along x (m)")
+    width: _Number = Field(description="width of one fork along y (m)")
+    thickness: _Number = Field(description="blade thickness along z (m)")
+    inner_gap: _Number = Field(description="gap between the inner sides of the two forks (m)")
+    tip_x: _Number = Field(description="x of the fork tips in the forklift frame (m)")
+
+    @field_validator("length", "width", "thickness", "inner_gap", "tip_x")
+    @classmethod
+    def _plausible(cls, value: float, info: ValidationInfo) -> float:
+        _check_ranges(value, info, FORK_RANGES_M)
+        if info.field_name == "tip_x" and "length" in info.data:
+            heel = value - info.data["length"]
+            lo, hi = HEEL_X_RANGE_M
+            if not lo <= heel <= hi:
+                raise PydanticCustomError(
+                    "out_of_range",
+                    f"puts the fork heels (tip_x - length) at x = {heel:g} m, outside {lo:g}..{hi:g} m "
+                    "(the heels sit at the carriage, near the forklift origin)",
+                )
+        return value
 
     @property
     def heel_x(self) -> float:
@@ -88,7 +155,7 @@ class PalletPart:
         return self.hi - self.lo
 
 
-class PalletType(BaseModel):
+class PalletType(FileModel):
     """A block pallet entered on its `width` side, built of boards and blocks (metres, pallet frame).
 
     From the floor up: bottom boards (along x, under the block columns), blocks (3 rows along x by
@@ -97,39 +164,79 @@ class PalletType(BaseModel):
     crosses the entry side) up to the underside of the cross boards.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, validate_default=True)  # the defaults meet the checks too
 
-    name: str = "EUR/EPAL"
-    length: float = Field(1.2, gt=0, description="along x, the fork direction (m)")
-    width: float = Field(0.8, gt=0, description="along y, the entry face (m)")
-    height: float = Field(0.144, gt=0, description="total height (m); must equal the sum of the layers")
-    top_board_thickness: float = Field(0.022, gt=0)
-    top_board_widths: tuple[float, ...] = Field(
-        (0.145, 0.100, 0.145, 0.100, 0.145), description="deck boards along x, spread evenly over the width"
+    # Fields that are checked against others come after them (`height` last): a validator sees the
+    # fields above it (`ValidationInfo.data`), so each problem names its own field.
+    name: str = Field("EUR/EPAL", min_length=1, max_length=64)
+    length: _Number = Field(1.2, description="along x, the fork direction (m)")
+    width: _Number = Field(0.8, description="along y, the entry face (m)")
+    top_board_thickness: _Number = 0.022
+    top_board_widths: tuple[_Number, ...] = Field(
+        (0.145, 0.100, 0.145, 0.100, 0.145),
+        min_length=1,
+        max_length=20,
+        description="deck boards along x, spread evenly over the width",
     )
-    cross_board_thickness: float = Field(0.022, gt=0, description="boards along y on the blocks")
-    block_height: float = Field(0.078, gt=0)
-    block_length: float = Field(0.145, gt=0, description="block (and cross board) size along x")
-    block_columns: tuple[float, float, float] = Field(
+    cross_board_thickness: _Number = Field(0.022, description="boards along y on the blocks")
+    block_height: _Number = 0.078
+    block_length: _Number = Field(0.145, description="block (and cross board) size along x")
+    block_columns: tuple[_Number, _Number, _Number] = Field(
         (0.100, 0.145, 0.100), description="block widths along y, right to left; pockets between them"
     )
-    bottom_board_thickness: float = Field(0.022, gt=0, description="boards along x under each block column")
+    bottom_board_thickness: _Number = Field(0.022, description="boards along x under each block column")
+    height: _Number = Field(0.144, description="total height (m); must equal the sum of the layers")
 
-    @model_validator(mode="after")
-    def _dimensions_add_up(self) -> PalletType:
-        layers = self.bottom_board_thickness + self.block_height + self.cross_board_thickness + self.top_board_thickness
-        if abs(layers - self.height) > _MM:
-            raise ValueError(
-                f"layers add up to {layers * 1e3:.1f} mm (bottom + block + cross + top) but height is "
-                f"{self.height * 1e3:.1f} mm"
+    @field_validator(*PALLET_RANGES_M)
+    @classmethod
+    def _plausible(cls, value: float | tuple[float, ...], info: ValidationInfo) -> float | tuple[float, ...]:
+        _check_ranges(value, info, PALLET_RANGES_M)
+        return value
+
+    @field_validator("top_board_widths")
+    @classmethod
+    def _deck_fits(cls, widths: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        width = info.data.get("width")
+        if width is not None and sum(widths) > width + _MM:
+            raise PydanticCustomError(
+                "dimensions", f"the deck boards are {sum(widths):g} m wide in all, wider than the pallet ({width:g} m)"
             )
-        if sum(self.block_columns) >= self.width:
-            raise ValueError("block columns leave no room for pockets")
-        if sum(self.top_board_widths) > self.width + _MM:
-            raise ValueError("top deck boards are wider than the pallet")
-        if 3 * self.block_length >= self.length:
-            raise ValueError("three block rows do not fit in the pallet length")
-        return self
+        return widths
+
+    @field_validator("block_length")
+    @classmethod
+    def _rows_fit(cls, block_length: float, info: ValidationInfo) -> float:
+        length = info.data.get("length")
+        if length is not None and 3 * block_length >= length:
+            raise PydanticCustomError(
+                "dimensions", f"three block rows of {block_length:g} m do not fit in the pallet length ({length:g} m)"
+            )
+        return block_length
+
+    @field_validator("block_columns")
+    @classmethod
+    def _pockets_fit(cls, columns: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
+        width = info.data.get("width")
+        if width is not None and sum(columns) >= width:
+            raise PydanticCustomError(
+                "dimensions",
+                f"the block columns are {sum(columns):g} m wide in all: no room for pockets in {width:g} m",
+            )
+        return columns
+
+    @field_validator("height")
+    @classmethod
+    def _layers_add_up(cls, height: float, info: ValidationInfo) -> float:
+        names = ("bottom_board_thickness", "block_height", "cross_board_thickness", "top_board_thickness")
+        if all(n in info.data for n in names):
+            layers = sum(info.data[n] for n in names)
+            if abs(layers - height) > _MM:
+                raise PydanticCustomError(
+                    "dimensions",
+                    f"layers add up to {layers * 1e3:.1f} mm (bottom + block + cross + top) but height is "
+                    f"{height * 1e3:.1f} mm",
+                )
+        return height
 
     @classmethod
     def eur(cls) -> PalletType:
@@ -221,10 +328,16 @@ def load_pallet_type(path: str | Path) -> PalletType:
     return load_yaml_model(path, PalletType, PerceptionError)
 
 
+PALLET_NAMES = ("eur", "epal", "eur/epal")
+"""Names of the built-in pallet type (the EUR/EPAL pallet), any case."""
+
+
 def pallet_type(name: str) -> PalletType:
-    """A pallet type by name (`eur`, `epal`, `eur/epal`: the EUR/EPAL pallet) or from a YAML file path."""
-    if name.lower() in ("eur", "epal", "eur/epal"):
+    """A pallet type by name (`PALLET_NAMES`: the EUR/EPAL pallet) or from a YAML file path."""
+    if name.lower() in PALLET_NAMES:
         return PalletType.eur()
+    if not Path(name).exists() and not Path(name).suffix:
+        raise PerceptionError(f"{name}: not a known pallet type ({', '.join(PALLET_NAMES)}) nor a pallet type file")
     return load_pallet_type(name)
 
 

@@ -75,3 +75,38 @@ def test_bad_calibration_file_is_a_perception_error(tmp_path, frame):
     bad.write_text("{}")
     with pytest.raises(PerceptionError, match="not a calibration file"):
         run(["estimate-pallet", path, "--calibration", str(bad)])
+
+
+def test_every_input_is_checked_before_any_work(tmp_path, frame, monkeypatch):
+    import palletpilot.perception.pallet as pallet_module
+
+    monkeypatch.setattr(pallet_module, "estimate_pallet", lambda *a, **k: pytest.fail("work started"))
+    with np.load(save_bundle(tmp_path / "good.npz", frame)) as data:
+        arrays = {key: data[key] for key in data.files}
+    arrays["K"][0, 0] = 1e-3  # the tiny focal length that once asked for 387 TiB
+    path = str(tmp_path / "frame.npz")
+    np.savez_compressed(path, **arrays)
+    cal = tmp_path / "calib.json"
+    cal.write_text('{"T_forklift_camera": [[1, 0, 0, 1e6], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}')
+    pallet = tmp_path / "pallet.yaml"
+    pallet.write_text("width: 50\n")
+    vehicle = tmp_path / "vehicle.yaml"
+    vehicle.write_text("wheelbase: [\n")
+    argv = ["estimate-pallet", path, "--calibration", str(cal), "--pallet", str(pallet), "--vehicle", str(vehicle)]
+    with pytest.raises(PerceptionError) as info:
+        run(argv)
+    problems = info.value.problems
+    assert [p.split(": ")[0] for p in problems] == [str(vehicle), path, path, str(cal), str(pallet)]
+    assert "K: fx 0.001 px is implausible" in problems[1] and "1e+06 m from the forklift origin" in problems[3]
+    assert all("\n" not in p for p in problems) and str(info.value).startswith(f"{vehicle}: ")
+
+
+def test_vehicle_mast_range_checks_the_fork_height(tmp_path, frame, calib):
+    from palletpilot.geometry.fileio import bundled_path
+
+    vehicle = str(bundled_path("missions", "forklift.yaml"))
+    high = str(save_bundle(tmp_path / "high.npz", dataclasses.replace(frame, fork_height=3.0)))
+    with pytest.raises(PerceptionError, match=r"high\.npz: fork_height: 3 m is outside the mast's range 0\.\.2 m"):
+        run(["estimate-pallet", high, "--calibration", calib, "--vehicle", vehicle])
+    path = str(save_bundle(tmp_path / "frame.npz", frame))
+    assert run(["estimate-pallet", path, "--calibration", calib, "--vehicle", vehicle]) == 0

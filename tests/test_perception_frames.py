@@ -20,7 +20,7 @@ def _bundle(h: int = 6, w: int = 8) -> FrameBundle:
     depth = rng.uniform(0.3, 5.0, (h, w)).astype(np.float32)
     depth[0, 0] = 0.0
     depth[1, 1] = np.nan
-    K = np.array([[600.0, 0.0, (w - 1) / 2], [0.0, 600.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    K = np.array([[6.0, 0.0, (w - 1) / 2], [0.0, 6.0, (h - 1) / 2], [0.0, 0.0, 1.0]])  # fx ~ 0.75 width
     labels = rng.choice([0, 1, 5, 7, 255], (h, w)).astype(np.uint8)
     rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
     T = np.eye(4)
@@ -110,7 +110,7 @@ def test_bad_bundle_files_raise_one_clear_line(tmp_path: Path, change, key: str,
 def test_not_an_npz_is_a_perception_error(tmp_path: Path) -> None:
     text = tmp_path / "frame.npz"
     text.write_text("depth: not really\n")
-    with pytest.raises(PerceptionError, match=r"frame\.npz: not a readable \.npz"):
+    with pytest.raises(PerceptionError, match=r"frame\.npz: not a frame bundle: not an \.npz \(zip\) archive"):
         load_bundle(text)
     single = tmp_path / "depth.npy"
     np.save(single, np.zeros((2, 2), np.float32))

@@ -1,0 +1,228 @@
+"""What the pallet estimator takes and gives: its tuning, its result and its failure; fusing results.
+
+Frames (ARCHITECTURE.md): `forklift` (origin on the floor between the fork heels, x towards the tips,
+y left, z up), `pallet` (origin at the centre of the entry face on the pallet's underside, x into the
+pallet, y left, z up), `world`. SI units (angles in rad; `to_json` in degrees).
+
+Public API (re-exported by `perception.pallet`; import it from there):
+- `PalletEstimatorConfig` (the tuning of `estimate_pallet`), `DEFAULT_CONFIG`.
+- `PalletEstimate` (`T_forklift_pallet`, `T_world_pallet`, spread, pocket measurements, `to_json`),
+  `PalletSpread` (1-sigma x, y and yaw).
+- `PalletNotFound`: a `PerceptionError` whose `reason` is one of `NotFoundReason`.
+- `fuse_estimates`: one estimate from several frames of one standpoint (inverse-variance weights).
+- `PALLET_CLASSES`: the label ids of pallet pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from palletpilot.geometry import SE3
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import SemanticClass
+from palletpilot.perception.instances import InstanceConfig
+
+PALLET_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL))
+"""Label ids of pallet pixels."""
+
+
+NotFoundReason = Literal["too_few_points", "no_entry_face", "pockets_inconsistent", "not_where_expected"]
+
+
+class PalletNotFound(PerceptionError):  # noqa: N818 (the name the architecture gives it)
+    """No pallet pose in the frame; `reason` is one of `NotFoundReason`, the message says why."""
+
+    def __init__(self, reason: NotFoundReason, message: str, where: str | None = None) -> None:
+        prefix = f"{where}: " if where else ""
+        super().__init__(f"{prefix}pallet not found ({reason.replace('_', ' ')}): {message}")
+        self.reason: NotFoundReason = reason
+        self.detail = message
+
+
+@dataclass(frozen=True)
+class PalletEstimatorConfig:
+    """Tuning of `estimate_pallet`. Distances in m, inverse depths in 1/m."""
+
+    min_points: int = 150
+    """Fewest pallet-labelled pixels with depth."""
+    depth_noise_k: float = 0.0042
+    """Prior depth noise: sigma(z) = k z^2, i.e. sigma of 1/z = k (D435 at 640x480: 0.08 px / (384 px * 0.05 m))."""
+    min_sigma_w: float = 2e-5
+    """Floor of the inverse-depth noise used in the scores (an ideal camera still has float rounding)."""
+    ransac_iterations: int = 200
+    ransac_max_pixels: int = 3000
+    seed: int = 0
+    max_yaw_deg: float = 50.0
+    """Largest angle between the entry face's normal and the forklift's x axis."""
+    min_face_pixels: int = 60
+    min_face_width_ratio: float = 0.5
+    """The plane's labelled inliers must span at least this share of the pallet width."""
+    min_face_height_ratio: float = 0.5
+    """... and at least this share of its height (5th to 95th percentile)."""
+    lateral_search_m: float = 0.06
+    vertical_search_m: float = 0.03
+    edge_search_m: float = 0.02
+    pocket_width_tolerance_m: float = 0.025
+    pocket_centre_tolerance_m: float = 0.025
+    min_pocket_open: float = 0.4
+    """Share of pocket-interior pixels that must see past the face."""
+    min_column_solid: float = 0.6
+    """Share of block-column pixels that must lie on the face."""
+    truncation_sigma: float = 3.0
+    rounds: int = 2
+    face_margin_px: float = 0.5
+    face_margin_m: float = 0.003
+    """The plane is refitted on pixels at least `face_margin_px` pixel footprints plus `face_margin_m` inside the
+    modelled solid face (its edges are known to a few millimetres)."""
+    edge_jump_rel: float = 0.05
+    """A pixel next to a depth jump of this share of its depth, or ..."""
+    edge_jump_sigma: float = 5.0
+    """... of this many depth-noise sigmas, is left out of the edge searches (it may be a flying pixel)."""
+    side_walls: bool = False
+    """Also fit side-wall pixels (pocket insides, pallet sides) with the face. Off: on the benchmark the few,
+    thin wall pixels at 2.5-4 m made the yaw slightly worse (p95 0.64 vs 0.51 deg on 60 frames)."""
+    min_wall_pixels: int = 30
+    """Fewest side-wall pixels for the joint face-and-walls fit."""
+    deck_yaw: bool = True
+    """Refine the yaw with the top deck's board edges where the camera sees the deck (see `_deck_yaw`)."""
+    deck_min_pixels: int = 150
+    """Fewest unoccluded deck pixels for the deck refinement."""
+    deck_min_camera_height_m: float = 0.05
+    """The camera must be this far above the deck for the refinement (a grazing view tells nothing)."""
+    deck_front_margin_m: float = 0.03
+    """Deck pixels nearer than this to the entry face are left out (the face's top edge)."""
+    deck_cargo_margin_px: int = 3
+    """Pixels this close to cargo, other-object or person pixels are left out (labels may be a few pixels off)."""
+    deck_yaw_search_deg: float = 1.5
+    """Largest yaw change the deck may make (searched within 4 face sigmas, at most this)."""
+    deck_lateral_step_m: float = 0.0005
+    """Resolution of the lateral cost tables."""
+    instances: InstanceConfig = field(default_factory=InstanceConfig)
+    """Instance separation and its gate, with `expected` (see `perception.instances`)."""
+
+
+DEFAULT_CONFIG = PalletEstimatorConfig()
+
+
+@dataclass(frozen=True)
+class PalletSpread:
+    """1-sigma uncertainty of a pallet estimate: x, y (m, forklift frame) and yaw (rad)."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+
+    def to_json(self) -> dict[str, float]:
+        """`x_m`, `y_m` (m) and `yaw_deg`."""
+        return {"x_m": round(self.x_m, 6), "y_m": round(self.y_m, 6), "yaw_deg": round(math.degrees(self.yaw_rad), 5)}
+
+
+@dataclass(frozen=True)
+class PalletEstimate:
+    """The estimated pallet pose and how it was found.
+
+    `T_forklift_pallet`: pallet frame (ARCHITECTURE.md) in the forklift frame at the time of the frame;
+    `T_world_pallet`: the same in the world when `T_world_forklift` was given.
+    `pocket_widths_m` and `pocket_centres_y_m` are measured in the pallet frame (left, right).
+    """
+
+    T_forklift_pallet: SE3
+    spread: PalletSpread
+    n_points: int
+    n_face_points: int
+    pocket_widths_m: tuple[float, float]
+    pocket_centres_y_m: tuple[float, float]
+    residual_rms_w: float
+    T_world_pallet: SE3 | None = None
+    runtime_ms: float = 0.0
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def yaw(self) -> float:
+        """Yaw (rad) of the pallet's x axis in the forklift frame."""
+        return self.T_forklift_pallet.to_se2().yaw
+
+    def to_json(self) -> dict[str, Any]:
+        """The `estimate-pallet --json` document (degrees and metres)."""
+        t = self.T_forklift_pallet.t
+        doc: dict[str, Any] = {
+            "T_forklift_pallet": np.round(self.T_forklift_pallet.matrix, 9).tolist(),
+            "x_m": round(float(t[0]), 6),
+            "y_m": round(float(t[1]), 6),
+            "z_m": round(float(t[2]), 6),
+            "yaw_deg": round(math.degrees(self.yaw), 5),
+            "spread": self.spread.to_json(),
+            "n_points": self.n_points,
+            "n_face_points": self.n_face_points,
+            "pocket_widths_m": [round(v, 5) for v in self.pocket_widths_m],
+            "pocket_centres_y_m": [round(v, 5) for v in self.pocket_centres_y_m],
+            "runtime_ms": round(self.runtime_ms, 2),
+        }
+        if self.T_world_pallet is not None:
+            pose = self.T_world_pallet.to_se2()
+            doc["T_world_pallet"] = np.round(self.T_world_pallet.matrix, 9).tolist()
+            doc["world"] = {
+                "x_m": round(pose.x, 6),
+                "y_m": round(pose.y, 6),
+                "yaw_deg": round(math.degrees(pose.yaw), 5),
+            }
+        return doc
+
+
+def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
+    """One estimate from several frames of a standing pallet, each weighted by its spread.
+
+    x, y (forklift frame, and the world frame where every estimate has `T_world_pallet`) and yaw are
+    inverse-variance weighted means (the spreads come from each frame's fit, so a frame that sees
+    less counts less); the height is the plain mean. The spread of the result is that of the
+    weighted mean, 1 / sqrt(sum of 1 / sigma^2). All estimates must be of the same pallet from the
+    same standpoint (the forklift frame does not move between them).
+    """
+    if not estimates:
+        raise ValueError("fuse_estimates: no estimates")
+    if len(estimates) == 1:
+        return estimates[0]
+
+    # Precisions (1 / sigma^2) per frame of x, y and yaw; normalised, they are the weights.
+    px, py, pyaw = (
+        1.0 / np.maximum(np.array([getattr(e.spread, k) for e in estimates]), 1e-9) ** 2
+        for k in ("x_m", "y_m", "yaw_rad")
+    )
+    wx, wy, wyaw = px / px.sum(), py / py.sum(), pyaw / pyaw.sum()
+
+    def fuse(poses: list[SE3], wx: np.ndarray, wy: np.ndarray, wyaw: np.ndarray) -> SE3:
+        t = np.array([p.t for p in poses])
+        yaws = np.array([p.to_se2().yaw for p in poses])
+        ref = yaws[0]
+        yaw = ref + float(wyaw @ np.angle(np.exp(1j * (yaws - ref))))  # mean of the differences: no wrap-around
+        xyz = (float(wx @ t[:, 0]), float(wy @ t[:, 1]), float(np.mean(t[:, 2])))
+        return SE3(Rotation.from_euler("z", yaw), xyz)
+
+    T_fp = fuse([e.T_forklift_pallet for e in estimates], wx, wy, wyaw)
+    T_wp = None
+    if all(e.T_world_pallet is not None for e in estimates):
+        # The fused pallet carried into the world through each frame's own T_world_forklift, averaged
+        # (equal weights: those differ by localization noise only).
+        T_wf = [e.T_world_pallet @ e.T_forklift_pallet.inv() for e in estimates]  # type: ignore[operator]
+        equal = np.full(len(estimates), 1.0 / len(estimates))
+        T_wp = fuse([T @ T_fp for T in T_wf], equal, equal, equal)
+
+    spread = PalletSpread(*(float(1.0 / math.sqrt(p.sum())) for p in (px, py, pyaw)))
+    first = estimates[0]
+    return PalletEstimate(
+        T_forklift_pallet=T_fp,
+        spread=spread,
+        n_points=sum(e.n_points for e in estimates),
+        n_face_points=sum(e.n_face_points for e in estimates),
+        pocket_widths_m=tuple(np.mean([e.pocket_widths_m for e in estimates], axis=0).tolist()),
+        pocket_centres_y_m=tuple(np.mean([e.pocket_centres_y_m for e in estimates], axis=0).tolist()),
+        residual_rms_w=float(np.mean([e.residual_rms_w for e in estimates])),
+        T_world_pallet=T_wp,
+        runtime_ms=sum(e.runtime_ms for e in estimates),
+        extras={**first.extras, "frames": len(estimates)},
+    )

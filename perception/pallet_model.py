@@ -1,0 +1,282 @@
+"""The pallet model of the entry side: where each ray ends behind the face for a pallet type, and scoring it.
+
+Frames: on the entry-face plane (`perception.pallet_face`), a ray's lateral position `s` and height
+`h` relative to a hypothesised pallet centre and underside (pallet y and z, m), its slopes behind the
+face, and depths behind the face (m along the pallet's x; inf: the ray ends far, in a pocket).
+
+Package-internal API (used by `perception.pallet`, `perception.pallet_deck`):
+- `_Model` (`_Model.of(PalletType)`: block columns, cross board, deck boards and pockets of the entry
+  side; `solid`: points on the face's solid parts).
+- Predicted depth behind the face: `_wall_delta`, `_wall_hits` (one layer of solid intervals with side
+  walls), `_layer_delta` (block layer, cross board and deck), `_wall_pixels` (pixels on side walls).
+- Scoring hypotheses: `_cost` (truncated chi-square of inverse-depth residuals), `_best` (centre and
+  half-width of the ~1-sigma interval of a grid), `_initial_underside` (the underside height from the
+  face's profile).
+- `_check_pockets`: `PalletNotFound("pockets_inconsistent")` unless the face's gaps match the type.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from palletpilot.perception.pallet_estimate import PalletEstimatorConfig, PalletNotFound
+from palletpilot.perception.pallet_face import _FaceCoords
+from palletpilot.perception.specs import PalletType
+
+
+@dataclass(frozen=True)
+class _Model:
+    """The entry side of a pallet type, in pallet-frame y (lateral) and z (height above the underside)."""
+
+    width: float
+    length: float
+    height: float
+    columns: np.ndarray  # (3, 2) block column (y_lo, y_hi), right to left
+    block_top: float  # top of the block layer = pocket height
+    cross_top: float  # top of the cross boards
+    top_boards_thickness: float
+    block_length: float
+    top_boards: np.ndarray  # (B, 2) deck boards (y_lo, y_hi)
+    pocket_width: float
+    pocket_centres: np.ndarray  # (2,) (left, right)
+
+    @classmethod
+    def of(cls, p: PalletType) -> _Model:
+        cols = np.array(p.column_bounds_y(), dtype=float)
+        boards = np.array(sorted((part.lo[1], part.hi[1]) for part in p.parts() if part.kind == "top_board"))
+        return cls(
+            width=p.width,
+            length=p.length,
+            height=p.height,
+            columns=cols,
+            block_top=p.pocket_height,
+            cross_top=p.pocket_height + p.cross_board_thickness,
+            top_boards_thickness=p.top_board_thickness,
+            block_length=p.block_length,
+            top_boards=boards,
+            pocket_width=p.pocket_width,
+            pocket_centres=np.array(p.pocket_centres_y),
+        )
+
+    def solid(self, s: np.ndarray, h: np.ndarray, margin_s: np.ndarray | float, margin_h: float) -> np.ndarray:
+        """Points (s, h) of the entry face at least the margins inside its solid parts."""
+        out = np.zeros(np.broadcast(s, h).shape, bool)
+        full = (np.abs(s) <= 0.5 * self.width - margin_s) & (h >= self.block_top + margin_h)
+        out |= full & (h <= self.cross_top - margin_h)
+        for lo, hi in self.top_boards:  # a deck board's front sits on the cross board's
+            out |= (
+                (s >= lo + margin_s)
+                & (s <= hi - margin_s)
+                & (h >= self.block_top + margin_h)
+                & (h <= self.height - margin_h)
+            )
+        for lo, hi in self.columns:
+            out |= (s >= lo + margin_s) & (s <= hi - margin_s) & (h >= margin_h) & (h <= self.height - margin_h)
+        return out
+
+
+def _wall_delta(s: np.ndarray, t: np.ndarray, intervals: np.ndarray, wall: float) -> np.ndarray:
+    """Depth behind the face (m) where rays end on solid intervals of one layer, else inf.
+
+    `s` (N, M): lateral position of each ray on the face plane relative to the pallet centre for M
+    hypotheses; `t` (N, 1): lateral change per metre behind the face; `intervals` (K, 2) or
+    (M, K, 2): solid (y_lo, y_hi) at the face, with side walls `wall` deep behind it.
+    """
+    iv = intervals if intervals.ndim == 3 else intervals[None]
+    delta = np.full(np.broadcast_shapes(np.shape(s), np.shape(t), (iv.shape[0],)), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_t = 1.0 / t
+        for k in range(iv.shape[1]):
+            lo, hi = iv[:, k, 0], iv[:, k, 1]
+            for c in (lo, hi):  # a ray beside the interval moving towards it meets the wall at y = c
+                d = (c - s) * inv_t
+                d[(d <= 0) | (d > wall)] = np.inf
+                np.minimum(delta, d, out=delta)
+            delta[(s >= lo) & (s <= hi)] = 0.0
+    return delta
+
+
+def _wall_hits(s: np.ndarray, t: np.ndarray, intervals: np.ndarray, wall: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_wall_delta` and the lateral position (pallet y) of the side wall each ray ends on (NaN: none)."""
+    delta = np.full(s.shape, np.inf)
+    where = np.full(s.shape, np.nan)
+    iv = intervals if intervals.ndim == 3 else intervals[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(iv.shape[1]):
+            lo, hi = iv[:, k, 0], iv[:, k, 1]
+            inside = (s >= lo) & (s <= hi)
+            delta[inside] = 0.0
+            # A ray left of the interval moving right meets its left wall (y = hi), and vice versa.
+            for d, c in (((s - hi) / -t, hi), ((lo - s) / t, lo)):
+                better = (d > 0) & (d <= wall) & (d < delta)
+                delta = np.where(better, d, delta)
+                where = np.where(better, np.broadcast_to(c, s.shape), where)
+    return delta, where
+
+
+def _layer_delta(
+    model: _Model, s_rel: np.ndarray, h_rel: np.ndarray, t: np.ndarray, v: np.ndarray, cols: np.ndarray
+) -> np.ndarray:
+    """Model depth behind the face (m, inf = far) for rays at (s_rel, h_rel) on the face plane.
+
+    Covers the block layer (columns and their side walls), the cross board (full width) and the top
+    board layer (deck boards with full-length side walls; between boards the ray may end on the cross
+    board's top). Rays above the pallet end on the deck top when they meet a deck board.
+    """
+    delta = np.full(np.broadcast(s_rel, h_rel).shape, np.inf)
+    block = h_rel < model.block_top
+    if block.any():
+        delta = np.where(block, _wall_delta(s_rel, t, cols, model.block_length), delta)
+    cross = (h_rel >= model.block_top) & (h_rel < model.cross_top)
+    if cross.any():
+        d = _wall_delta(s_rel, t, np.array([[-0.5 * model.width, 0.5 * model.width]]), model.block_length)
+        delta = np.where(cross, d, delta)
+    top = h_rel >= model.cross_top
+    if top.any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d_boards = _wall_delta(s_rel, t, model.top_boards, model.length)
+            in_gap_or_above = h_rel > model.cross_top
+            d_cross = np.where(v < 0, (h_rel - model.cross_top) / -v, np.inf)
+            d_cross = np.where(in_gap_or_above & (d_cross <= model.block_length), d_cross, np.inf)
+            above = h_rel > model.height
+            d_deck = np.where(v < 0, (h_rel - model.height) / -v, np.inf)
+            s_hit = s_rel + t * d_deck
+            on_board = np.zeros(np.broadcast(s_hit, h_rel).shape, bool)
+            for lo, hi in model.top_boards:
+                on_board |= (s_hit >= lo) & (s_hit <= hi)
+            d_deck = np.where(above & on_board & (d_deck <= model.length), d_deck, np.inf)
+            d_top = np.where(above, np.minimum(d_deck, d_cross), np.minimum(d_boards, d_cross))
+        delta = np.where(top, d_top, delta)
+    return delta
+
+
+def _wall_pixels(
+    model: _Model, fc: _FaceCoords, s0: float, z0: float, footprint: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels the model puts on a side wall (pallet y = const), away from the wall's ends: mask and wall y."""
+    s_rel, h_rel = fc.s - s0, fc.h - z0
+    t = fc.t
+    m = 0.5 * footprint + 0.003
+    wall_y = np.full(len(s_rel), np.nan)
+    layers = (
+        ((m, model.block_top - m), model.columns, model.block_length),
+        (
+            (model.block_top + m, model.cross_top - m),
+            np.array([[-0.5 * model.width, 0.5 * model.width]]),
+            model.block_length,
+        ),
+        ((model.cross_top + m, model.height - m), model.top_boards, model.length),
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = footprint / np.abs(t)  # a pixel's extent along a wall (m)
+        for (h_lo, h_hi), intervals, wall in layers:
+            sel = np.flatnonzero((h_rel >= h_lo) & (h_rel <= h_hi))
+            if sel.size == 0:
+                continue
+            d, c = _wall_hits(s_rel[sel], t[sel], intervals, wall)
+            ok = np.isfinite(d) & (d > 0.5 * along[sel]) & (d < wall - along[sel])
+            # Where a deck gap or the layer's floor would end the ray first, it is no wall pixel.
+            h_end = h_rel[sel] + fc.v[sel] * d
+            ok &= h_end >= h_lo - m
+            wall_y[sel[ok]] = c[ok]
+    return np.isfinite(wall_y), wall_y
+
+
+def _cost(
+    fc: _FaceCoords, idx: np.ndarray, delta: np.ndarray, far_from: float, sigma: float, trunc: float
+) -> np.ndarray:
+    """Truncated chi-square (M,) of inverse-depth residuals for predicted depths `delta` (N, M) behind the face.
+
+    Where the model predicts nothing within `far_from` of the face, only a measurement nearer than
+    that counts against it.
+    """
+    nd = fc.nd[idx][:, None]
+    w = fc.w[idx][:, None]
+    hit = np.isfinite(delta)
+    with np.errstate(invalid="ignore"):
+        r_hit = (w - nd / (fc.D + np.where(hit, delta, 0.0))) / sigma
+    r_far = np.maximum(w - nd / (fc.D + far_from), 0.0) / sigma
+    r = np.where(hit, r_hit, r_far)
+    return np.minimum(r * r, trunc * trunc).sum(axis=0)
+
+
+def _best(grid: np.ndarray, cost: np.ndarray) -> tuple[float, float]:
+    """Centre of the grid values whose cost is within 1 of the minimum (a ~1-sigma interval) and its half-width."""
+    near = grid[cost <= cost.min() + 1.0]
+    return float(0.5 * (near.min() + near.max())), float(0.5 * (near.max() - near.min()))
+
+
+def _initial_underside(model: _Model, h: np.ndarray) -> float:
+    """Underside height (m) whose face profile (solid width per height) best explains the inliers' heights."""
+    step = 0.004
+    lo, hi = float(np.percentile(h, 1)) - 0.06, float(np.percentile(h, 99)) + 0.06
+    edges = np.arange(lo, hi + step, step)
+    counts, _ = np.histogram(h, edges)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    best, best_ss = lo, np.inf
+    for z0 in np.arange(lo, hi - model.height + 1e-9, 0.002):
+        hr = centres - z0
+        width = np.where((hr >= 0) & (hr < model.block_top), np.sum(np.diff(model.columns, axis=1)), 0.0)
+        width = np.where((hr >= model.block_top) & (hr < model.cross_top), model.width, width)
+        top = float(np.sum(np.diff(model.top_boards, axis=1)))
+        width = np.where((hr >= model.cross_top) & (hr <= model.height), top, width)
+        denom = float(width @ width)
+        if denom <= 0:
+            continue
+        a = float(counts @ width) / denom
+        ss = float(np.sum((counts - a * width) ** 2))
+        if ss < best_ss:
+            best, best_ss = float(z0), ss
+    return best
+
+
+def _check_pockets(
+    model: _Model,
+    cfg: PalletEstimatorConfig,
+    fc: _FaceCoords,
+    s0: float,
+    z0: float,
+    band: np.ndarray,
+    sigma: float,
+    widths: tuple[float, float],
+    centres: tuple[float, float],
+) -> None:
+    """Raise `PalletNotFound("pockets_inconsistent")` unless the gaps in the face match the pallet type."""
+    s_rel = fc.s - s0
+    # Occupancy: the middle of each pocket must see past the face, the middle of each column must be on it.
+    res = fc.w - fc.nd / fc.D
+    on_face = np.abs(res) < cfg.truncation_sigma * sigma
+    # Rays the model sends into the pocket (not onto a block's side wall, seen at a slant).
+    into_pocket = ~np.isfinite(_wall_delta(s_rel, fc.t, model.columns, model.block_length))
+    for name, c in (("left", model.pocket_centres[0]), ("right", model.pocket_centres[1])):
+        m = band & into_pocket & (np.abs(s_rel - c) <= 0.25 * model.pocket_width)
+        if m.sum() >= 5:
+            open_share = 1.0 - float(on_face[m].mean())
+            if open_share < cfg.min_pocket_open:
+                raise PalletNotFound(
+                    "pockets_inconsistent",
+                    f"the {name} pocket is closed: only {100 * open_share:.0f} % of its pixels see past the entry face",
+                )
+    for lo, hi in model.columns:
+        m = band & (np.abs(s_rel - 0.5 * (lo + hi)) <= 0.25 * (hi - lo))
+        if m.sum() >= 5 and float(on_face[m].mean()) < cfg.min_column_solid:
+            raise PalletNotFound(
+                "pockets_inconsistent",
+                f"the block column at y = {0.5 * (lo + hi):+.3f} m is missing: "
+                f"{100 * float(on_face[m].mean()):.0f} % on the face",
+            )
+    for name, w in (("left", widths[0]), ("right", widths[1])):
+        if abs(w - model.pocket_width) > cfg.pocket_width_tolerance_m:
+            raise PalletNotFound(
+                "pockets_inconsistent",
+                f"the {name} pocket is {1e3 * w:.0f} mm wide, the pallet type's are {1e3 * model.pocket_width:.1f} mm",
+            )
+    spacing = centres[0] - centres[1]
+    expected = model.pocket_centres[0] - model.pocket_centres[1]
+    if abs(spacing - expected) > cfg.pocket_centre_tolerance_m:
+        raise PalletNotFound(
+            "pockets_inconsistent",
+            f"the pocket centres are {1e3 * spacing:.0f} mm apart, the pallet type's {1e3 * expected:.1f} mm",
+        )
