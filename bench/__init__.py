@@ -6,6 +6,7 @@ Public API: `BENCHMARKS`, the registry of name -> module path.
 
 BENCHMARKS: dict[str, str] = {
     "roadmap": "palletpilot.bench.roadmap",
+    "mapload": "palletpilot.bench.mapload",
     "sim": "palletpilot.bench.sim",
     "calibration": "palletpilot.bench.calibration",
     "pallet": "palletpilot.bench.pallet",

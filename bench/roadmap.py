@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from palletpilot.executor.cli_args import count, seed
 from palletpilot.geometry import SE2
 from palletpilot.roadmap import Arc, Edge, Line, Node, NodeType, Planner, Roadmap
 
@@ -58,10 +59,10 @@ def warehouse_grid(rows: int = 100, cols: int = 100, spacing: float = 2.0, cross
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--rows", type=int, default=100)
-    parser.add_argument("--cols", type=int, default=100)
-    parser.add_argument("--queries", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rows", type=count(2, 2000), default=100)
+    parser.add_argument("--cols", type=count(2, 2000), default=100)
+    parser.add_argument("--queries", type=count(1), default=50)
+    parser.add_argument("--seed", type=seed, default=0)
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -1,4 +1,5 @@
-"""Map files (YAML): loading with validation that reports every problem, one line each.
+"""Map files (YAML, or JSON with the same schema for a `.json` file): loading with validation that
+reports every problem, one line each (`warehouse.yaml: nodes[3].x: must be within -10000..10000 m`).
 
 ```yaml
 name: example warehouse
@@ -19,92 +20,92 @@ edges:
 An arc is fixed by its start node's heading (or, if that node has none, its end node's) and its end
 point. A bezier without `control` leaves and arrives along the node headings with handles of a third
 of the chord. Angles are in degrees in the file, radians inside.
+
+Ranges (world frame): node coordinates and Bezier control points within +-10 km (`COORD_LIMIT_M`),
+heights 0..20 m (`HEIGHT_MAX_M`), `yaw_deg` within -360..360 (`YAW_LIMIT_DEG`; kept as written, any
+value in range is a heading, 270 and -90 are the same). Numbers must be numbers (`"3.5"` or `true`
+are not), ids must not be empty or blank. Structural checks: duplicate node ids, edges naming
+unknown nodes, an edge from a node to itself, duplicate edges, curves of zero length, arcs that
+cannot be drawn, Bezier control points on an end point or making a cusp (the curve stops and
+turns back).
+
+Loading scales to 100,000-node maps (`bench mapload`): the YAML is read by `roadmap.mapread`, the
+curves are built and checked in arrays by `roadmap.mapbuild`.
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field, StringConstraints, ValidationError
 
-from palletpilot.geometry import SE2
-from palletpilot.geometry.fileio import read_yaml, validate_model
-from palletpilot.roadmap.curves import Arc, CubicBezier, Curve, Line
+from palletpilot.geometry.fileio import FileModel
 from palletpilot.roadmap.errors import RoadmapError
-from palletpilot.roadmap.graph import NOT_FOR_PARKING, Direction, Edge, Node, NodeType, Roadmap
+from palletpilot.roadmap.graph import Direction, NodeType, Roadmap
+from palletpilot.roadmap.mapbuild import build_roadmap
+from palletpilot.roadmap.mapread import gc_paused, map_vehicle_entry, read_map_data
+
+COORD_LIMIT_M = 10_000.0
+"""Node coordinates and Bezier control points lie within +-10 km of the map origin (m)."""
+HEIGHT_MAX_M = 20.0
+"""The highest load height of a pallet or drop node (m)."""
+YAW_LIMIT_DEG = 360.0
+"""`yaw_deg` lies within -360..360 degrees."""
+
+Coord = Annotated[float, Field(ge=-COORD_LIMIT_M, le=COORD_LIMIT_M, strict=True)]
+Name = Annotated[str, StringConstraints(min_length=1, pattern=r"\S")]
+Speed = Annotated[float, Field(gt=0.0, strict=True)]
+
+# Fields with a range, for the message: name -> (low, high, unit).
+_RANGES: dict[str, tuple[float, float, str]] = {
+    "x": (-COORD_LIMIT_M, COORD_LIMIT_M, "m"),
+    "y": (-COORD_LIMIT_M, COORD_LIMIT_M, "m"),
+    "control": (-COORD_LIMIT_M, COORD_LIMIT_M, "m"),
+    "height": (0.0, HEIGHT_MAX_M, "m"),
+    "yaw_deg": (-YAW_LIMIT_DEG, YAW_LIMIT_DEG, "deg"),
+}
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Strict(FileModel):
+    """A file schema (unknown keys, NaN and infinities are errors)."""
 
 
 class NodeSpec(_Strict):
-    """A node as written in a map file."""
+    """A node as written in a map file (world frame: x, y in m, yaw_deg in degrees, height in m)."""
 
-    id: str
+    id: Name
     type: NodeType
-    x: float
-    y: float
-    yaw_deg: float | None = None
-    height: float = Field(0.0, ge=0.0)
-    pre_pallet: str | None = None
+    x: Coord
+    y: Coord
+    yaw_deg: Annotated[float, Field(ge=-YAW_LIMIT_DEG, le=YAW_LIMIT_DEG, strict=True)] | None = None
+    height: Annotated[float, Field(ge=0.0, le=HEIGHT_MAX_M, strict=True)] = 0.0
+    pre_pallet: Name | None = None
 
 
 class EdgeSpec(_Strict):
-    """An edge as written in a map file."""
+    """An edge as written in a map file (`control`: two Bezier control points, world frame, m)."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(populate_by_name=True)
 
-    start: str = Field(alias="from")
-    end: str = Field(alias="to")
+    start: Name = Field(alias="from")
+    end: Name = Field(alias="to")
     curve: Literal["line", "arc", "bezier"] = "line"
-    control: list[tuple[float, float]] | None = Field(None, min_length=2, max_length=2)
+    control: list[tuple[Coord, Coord]] | None = Field(None, min_length=2, max_length=2)
     direction: Direction = Direction.FORWARD
-    speed_limit: float | None = Field(None, gt=0.0)
-    both_ways: bool = False
+    speed_limit: Speed | None = None
+    both_ways: Annotated[bool, Field(strict=True)] = False
 
 
 class MapSpec(_Strict):
-    """A whole map file."""
+    """A whole map file (`default_speed_limit` in m/s)."""
 
     name: str = "roadmap"
-    vehicle: str | None = None
-    default_speed_limit: float = Field(1.0, gt=0.0)
+    vehicle: Name | None = None
+    default_speed_limit: Speed = 1.0
     parking_types: list[NodeType] | None = Field(None, min_length=1)
-    nodes: list[NodeSpec]
-    edges: list[EdgeSpec] = []
-
-
-def _tangent_towards(node: Node, target: np.ndarray) -> float:
-    """The node's heading axis, pointed towards `target`: yaw or yaw + pi."""
-    u = np.array([math.cos(node.pose.yaw), math.sin(node.pose.yaw)])
-    return node.pose.yaw if float(u @ (target - node.pose.xy)) >= 0.0 else node.pose.yaw + math.pi
-
-
-def build_curve(start: Node, end: Node, kind: str, control: list[tuple[float, float]] | None = None) -> Curve:
-    """The curve of an edge between two nodes, as the map file describes it (see module docstring)."""
-    if kind == "line":
-        return Line(start.pose.xy, end.pose.xy)
-    if kind == "arc":
-        if start.has_heading:
-            return Arc(SE2(start.pose.x, start.pose.y, _tangent_towards(start, end.pose.xy)), end.pose.xy)
-        if end.has_heading:
-            back = _tangent_towards(end, start.pose.xy)
-            return Arc(SE2(end.pose.x, end.pose.y, back), start.pose.xy).reversed()
-        raise RoadmapError("an arc needs a heading (yaw_deg) at its start or end node")
-    if control is not None:
-        return CubicBezier(start.pose.xy, control[0], control[1], end.pose.xy)
-    if not (start.has_heading and end.has_heading):
-        raise RoadmapError("a bezier without control points needs headings at both nodes")
-    chord = float(np.hypot(*(end.pose.xy - start.pose.xy)))
-    h0 = _tangent_towards(start, end.pose.xy)
-    h1 = _tangent_towards(end, start.pose.xy) + math.pi
-    return CubicBezier.from_poses(
-        SE2(start.pose.x, start.pose.y, h0), SE2(end.pose.x, end.pose.y, h1), chord / 3, chord / 3
-    )
+    nodes: list[NodeSpec] = Field(min_length=1)
+    edges: list[EdgeSpec] = Field(default_factory=list)
 
 
 def load_map(path: str | Path) -> Roadmap:
@@ -113,8 +114,9 @@ def load_map(path: str | Path) -> Roadmap:
     Geometry against a vehicle (curvature) is checked by `Roadmap.check(max_curvature)`;
     `check_map` does both.
     """
-    roadmap, problems = _load(Path(path))
-    problems += roadmap.check()
+    with gc_paused():
+        roadmap, problems = _load(Path(path))
+        problems += roadmap.check()
     if problems:
         raise RoadmapError(f"{path}: {len(problems)} problem(s) in the map", [f"{path}: {p}" for p in problems])
     return roadmap
@@ -122,71 +124,55 @@ def load_map(path: str | Path) -> Roadmap:
 
 def check_map(path: str | Path, max_curvature: float | None) -> tuple[Roadmap | None, list[str]]:
     """Every problem of a map file, one line each, including curvature above `max_curvature` (1/m)."""
-    try:
-        roadmap, problems = _load(Path(path))
-    except RoadmapError as exc:
-        return None, exc.problems
-    problems += roadmap.check(max_curvature)
+    with gc_paused():
+        try:
+            roadmap, problems = _load(Path(path))
+        except RoadmapError as exc:
+            return None, exc.problems
+        problems += roadmap.check(max_curvature)
     return roadmap, [f"{path}: {p}" for p in problems]
 
 
 def map_vehicle_file(path: str | Path) -> Path | None:
-    """The vehicle file a map names (resolved against the map's folder), or None."""
-    raw = read_yaml(path, RoadmapError)
-    if isinstance(raw, dict) and isinstance(raw.get("vehicle"), str):
-        return Path(path).parent / raw["vehicle"]
+    """The vehicle file a map names (resolved against the map's folder), or None.
+
+    A large map is parsed once for this and a `load_map` or `check_map` of it, in either order.
+    """
+    vehicle = map_vehicle_entry(path)
+    if isinstance(vehicle, str) and vehicle.strip():
+        return Path(path).parent / vehicle
     return None
 
 
-def _load(path: Path) -> tuple[Roadmap, list[str]]:
-    spec = validate_model(read_yaml(path, RoadmapError), MapSpec, str(path), RoadmapError)
+def _schema_lines(where: str, exc: ValidationError) -> list[str]:
+    """One line per schema problem: `where: nodes[3].x: must be within -10000..10000 m (got 12000.0)`."""
+    lines = []
+    for err in exc.errors(include_url=False):
+        loc = ""
+        for part in err["loc"]:
+            loc += f"[{part}]" if isinstance(part, int) else (f".{part}" if loc else str(part))
+        field = next((p for p in reversed(err["loc"]) if isinstance(p, str)), "")
+        msg = err["msg"]
+        if err["type"] in ("greater_than_equal", "less_than_equal") and field in _RANGES:
+            low, high, unit = _RANGES[field]
+            msg = f"must be within {low:g}..{high:g} {unit} (got {err['input']})"
+        elif err["type"] == "string_too_short":
+            msg = "must not be empty"
+        elif err["type"] == "string_pattern_mismatch":
+            msg = "must not be blank"
+        elif err["type"] in ("too_short", "too_long") and field == "control" and isinstance(err["input"], list):
+            msg = f"must be 2 points [[x, y], [x, y]] (got {len(err['input'])})"
+        elif err["type"] == "too_short" and loc == "nodes":
+            msg = "a map needs at least one node"
+        lines.append(f"{where}: {loc or 'file'}: {msg}")
+    return lines
 
-    roadmap = Roadmap(spec.name, str(path))
-    problems: list[str] = []
-    if spec.parking_types is not None:
-        banned = [t.value for t in spec.parking_types if t in NOT_FOR_PARKING]
-        if banned:
-            problems.append(
-                f"parking_types: {', '.join(banned)} nodes are slots or their approaches, no place to wait "
-                f"(allowed: {', '.join(t.value for t in NodeType if t not in NOT_FOR_PARKING)})"
-            )
-        roadmap.parking_types = frozenset(t for t in spec.parking_types if t not in NOT_FOR_PARKING)
-    for ns in spec.nodes:
-        if ns.id in roadmap:
-            problems.append(f"duplicate node id '{ns.id}'")
-            continue
-        roadmap.add_node(
-            Node(
-                ns.id,
-                ns.type,
-                SE2(ns.x, ns.y, math.radians(ns.yaw_deg or 0.0)),
-                has_heading=ns.yaw_deg is not None,
-                height=ns.height,
-                pre_pallet=ns.pre_pallet,
-            )
-        )
-    for es in spec.edges:
-        name = f"{es.start}->{es.end}"
-        unknown = [n for n in (es.start, es.end) if n not in roadmap]
-        if unknown:
-            problems += [f"edge '{name}': unknown node '{n}'" for n in unknown]
-            continue
-        if es.start == es.end:
-            problems.append(f"edge '{name}': starts and ends at the same node")
-            continue
-        if es.control is not None and es.curve != "bezier":
-            problems.append(f"edge '{name}': control points are only for a bezier, not a {es.curve}")
-            continue
-        try:
-            curve = build_curve(roadmap.node(es.start), roadmap.node(es.end), es.curve, es.control)
-        except RoadmapError as exc:
-            problems.append(f"edge '{name}': {exc}")
-            continue
-        speed = es.speed_limit or spec.default_speed_limit
-        pairs = [(es.start, es.end, curve)] + ([(es.end, es.start, curve.reversed())] if es.both_ways else [])
-        for u, v, c in pairs:
-            if roadmap.graph.has_edge(u, v):
-                problems.append(f"edge '{u}->{v}': duplicate edge")
-                continue
-            roadmap.add_edge(Edge(u, v, c, es.direction, speed))
-    return roadmap, problems
+
+def _load(path: Path) -> tuple[Roadmap, list[str]]:
+    raw = read_map_data(path)
+    try:
+        spec = MapSpec.model_validate(raw)
+    except ValidationError as exc:
+        lines = _schema_lines(str(path), exc)
+        raise RoadmapError(lines[0] if len(lines) == 1 else f"{path}: {len(lines)} problems", lines) from None
+    return build_roadmap(spec, str(path))

@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import minimize
 
 from palletpilot.geometry import SE2, angle_diff
 from palletpilot.roadmap.curves import CubicBezier, Curve, Line
@@ -35,6 +34,8 @@ def _turns_back(bez: CubicBezier, chord_heading: float) -> bool:
 
 def connect(start: SE2, end: SE2, max_curvature: float) -> Curve:
     """A forward-driven curve from `start` to `end` (poses in m, rad) with |curvature| <= `max_curvature` (1/m)."""
+    from scipy.optimize import minimize  # here: a map check need not load scipy.optimize
+
     if max_curvature <= 0:
         raise RoadmapError(f"curvature limit must be positive, got {max_curvature}")
     chord = end.xy - start.xy
