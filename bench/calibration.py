@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from palletpilot.executor.cli_args import count, out_folder, seed
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration import METHODS, CalibrationError, calibrate
@@ -36,9 +37,11 @@ AXES = ("err_x_mm", "err_y_mm", "err_z_mm", "err_tilt_deg", "err_pan_deg", "err_
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--poses", type=int, default=100)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="out/bench_calibration", help="folder for the CSV and the plots")
+    parser.add_argument("--poses", type=count(1), default=100)
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument(
+        "--out", type=out_folder, default="out/bench_calibration", help="folder for the CSV and the plots"
+    )
 
 
 def _tips_in_view(x: float, z: float, tilt_deg: float, tip_x: float, thickness: float) -> bool:

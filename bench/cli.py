@@ -8,6 +8,7 @@ import json
 import sys
 
 from palletpilot.bench import BENCHMARKS
+from palletpilot.executor.cli_args import Parser
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
@@ -19,7 +20,7 @@ def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:
         print(f"bench: unknown benchmark '{args.name}' (known: {', '.join(sorted(BENCHMARKS))})", file=sys.stderr)
         return EXIT_BAD_INPUT
     module = importlib.import_module(BENCHMARKS[args.name])
-    parser = argparse.ArgumentParser(prog=f"palletpilot bench {args.name}")
+    parser = Parser(prog=f"palletpilot bench {args.name}")
     module.add_arguments(parser)
     result = module.run(parser.parse_args(extra))
     if args.json:

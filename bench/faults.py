@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from palletpilot.bench.missions import RACK_DEEPER_MAX_M
+from palletpilot.executor.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.faults import FAULT_KINDS
 
@@ -68,10 +69,12 @@ KINDS = tuple(k for k in FAULT_KINDS if k != "kill")  # a kill is drawn apart: i
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--runs", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--jobs", type=int, default=1, help="worker processes")
-    parser.add_argument("--kill-rate", type=float, default=0.15, help="share of runs that are also killed (-9)")
+    parser.add_argument("--runs", type=count(1), default=50)
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes")
+    parser.add_argument(
+        "--kill-rate", type=number(0.0, 1.0), default=0.15, help="share of runs that are also killed (-9)"
+    )
 
 
 def _fault(rng: np.random.Generator) -> dict[str, Any]:

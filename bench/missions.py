@@ -21,9 +21,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from palletpilot.executor.cli_args import count, names, seed
 from palletpilot.geometry.fileio import bundled_path
 
 MISSIONS = bundled_path("missions")
+MODES = ("adaptive", "no_adapt")
 RACK_DEEPER_MAX_M = 0.13
 """A rack pallet stands at most this much deeper than its node: further, the mast would meet the rack
 beam before the fork tips reach the back blocks (`Settings.rack_overrun` + the far tolerance), and the
@@ -32,10 +34,10 @@ Pickup refuses it (`no_feasible_approach`) rather than touch the rack."""
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--runs", type=int, default=100)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--jobs", type=int, default=1, help="worker processes")
-    parser.add_argument("--modes", default="adaptive,no_adapt")
+    parser.add_argument("--runs", type=count(1), default=100)
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes")
+    parser.add_argument("--modes", type=names(MODES), default=list(MODES), help="comma-separated: adaptive, no_adapt")
 
 
 def _scenarios(runs: int, seed: int) -> list[dict]:
@@ -124,7 +126,7 @@ def _one(job: tuple[dict, bool]) -> dict:
 def run(args: argparse.Namespace) -> dict:
     """Run every scenario in each mode and return the figures."""
     specs = _scenarios(args.runs, args.seed)
-    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    modes = list(args.modes)
     jobs = [(s, m == "adaptive") for m in modes for s in specs]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:

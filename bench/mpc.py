@@ -34,7 +34,9 @@ from palletpilot.control import (
 )
 from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import Follower, SegmentTrack
+from palletpilot.control.mpc import SOLVERS
 from palletpilot.control.vehicle import VehicleParams
+from palletpilot.executor.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, wrap_angle
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.roadmap import Edge, Line, Node, NodeType, Planner, ReferencePath, connect, load_map, reference_path
@@ -171,16 +173,21 @@ def scenarios(params: VehicleParams) -> list[tuple[str, ReferencePath, bool]]:
     return out
 
 
+CONTROLLERS = ("mpc", "pure_pursuit")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--xy-noise", type=float, default=0.005, help="localization 1-sigma, m")
-    parser.add_argument("--yaw-noise-deg", type=float, default=0.2, help="localization 1-sigma, deg")
-    parser.add_argument("--slip", type=float, default=0.01, help="relative slip 1-sigma per step")
-    parser.add_argument("--solver", default=MpcConfig.solver, help="MPC solver (see control.mpc.SOLVERS)")
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--xy-noise", type=number(0.0, 1.0, "m"), default=0.005, help="localization 1-sigma, m")
+    parser.add_argument("--yaw-noise-deg", type=number(0.0, 45.0, "deg"), default=0.2, help="localization 1-sigma, deg")
+    parser.add_argument("--slip", type=number(0.0, 0.5), default=0.01, help="relative slip 1-sigma per step")
+    parser.add_argument(
+        "--solver", choices=SOLVERS, default=MpcConfig.solver, help="MPC solver (see control.mpc.SOLVERS)"
+    )
     parser.add_argument("--codegen", action="store_true", help="MPC solver as compiled C (cached)")
-    parser.add_argument("--horizon", type=int, default=MpcConfig.horizon)
-    parser.add_argument("--controllers", default="mpc,pure_pursuit")
+    parser.add_argument("--horizon", type=count(2, 200), default=MpcConfig.horizon)
+    parser.add_argument("--controllers", type=names(CONTROLLERS), default=list(CONTROLLERS))
     parser.add_argument("--routes", default="", help="comma-separated substrings: only matching routes")
     parser.add_argument("--per-route", action="store_true", help="also list each route's figures")
 
@@ -226,7 +233,7 @@ def run(args: argparse.Namespace) -> dict:
         keys = args.routes.split(",")
         cases = [c for c in cases if any(k in c[0] for k in keys)]
     out: dict = {"seed": args.seed, "routes": len(cases), "solver": args.solver, "codegen": args.codegen}
-    for ctrl in args.controllers.split(","):
+    for ctrl in args.controllers:
         t0 = time.perf_counter()
         if ctrl == "mpc":
             follower: Follower = MpcFollower(

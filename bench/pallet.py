@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from palletpilot.executor.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration
@@ -199,42 +200,26 @@ def _stats(values: list[float], scale: float, digits: int) -> dict[str, float | 
     }
 
 
-def _comma_list(*allowed: str) -> Callable[[str], list[str]]:
-    """An argparse type: a comma list of `allowed` words (a bad word is a one-line usage error)."""
-
-    def parse(text: str) -> list[str]:
-        words = [w.strip() for w in text.split(",") if w.strip()]
-        for w in words:
-            if w not in allowed:
-                raise argparse.ArgumentTypeError(f"unknown '{w}' ({', '.join(allowed)})")
-        return words
-
-    return parse
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--labels", type=_comma_list("gt", "onnx"), default="gt", help="comma list of gt, onnx")
+    parser.add_argument("--frames", type=count(1), default=200)
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--labels", type=names(("gt", "onnx")), default=["gt"], help="comma list of gt, onnx")
     parser.add_argument(
-        "--calibration", type=_comma_list("true", "estimated"), default="true", help="comma list of true, estimated"
+        "--calibration", type=names(("true", "estimated")), default=["true"], help="comma list of true, estimated"
     )
     parser.add_argument("--width", type=int, default=640, choices=(640, 848))
-    parser.add_argument("--lateral", type=float, default=0.35, help="max lateral misplacement (m)")
-    parser.add_argument("--longitudinal", type=float, default=0.05, help="max misplacement along the node (m)")
-    parser.add_argument("--yaw-deg", type=float, default=15.0, help="max yaw misplacement (deg)")
-    parser.add_argument("--ahead", type=float, nargs=2, default=PICKUP_AHEAD_M, help="entry face ahead of the tips (m)")
+    parser.add_argument("--lateral", type=number(0.0, 1.0, "m"), default=0.35, help="max lateral misplacement (m)")
+    parser.add_argument(
+        "--longitudinal", type=number(0.0, 1.0, "m"), default=0.05, help="max misplacement along the node (m)"
+    )
+    parser.add_argument("--yaw-deg", type=number(0.0, 45.0, "deg"), default=15.0, help="max yaw misplacement (deg)")
+    parser.add_argument(
+        "--ahead", type=number(0.1, 10.0, "m"), nargs=2, default=PICKUP_AHEAD_M, help="entry face ahead of the tips (m)"
+    )
     parser.add_argument(
         "--frames-per-estimate",
-        type=_positive_int,
+        type=count(1, 100),
         default=3,
         help="frames per standpoint, fused as the Pickup does (per-frame figures use every frame)",
     )

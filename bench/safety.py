@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from palletpilot.executor.cli_args import count, names, seed
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.specs import PalletType, pallet_pose_at_node
@@ -75,21 +76,10 @@ DROP_SPOT = pallet_pose_at_node(SE2(15.5, -4.0, math.radians(-90.0)), 0.0).to_se
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--runs", type=int, default=90)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--jobs", type=int, default=1, help="worker processes")
-    parser.add_argument("--families", type=_families, default=list(FAMILIES), help="comma-separated subset")
-
-
-def _families(text: str) -> list[str]:
-    """`--families`: known family names, comma-separated (argparse reports the unknown ones, exit 2)."""
-    names = [f.strip() for f in text.split(",") if f.strip()]
-    unknown = sorted(set(names) - set(FAMILIES))
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(
-            f"unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(FAMILIES)}"
-        )
-    return names
+    parser.add_argument("--runs", type=count(1), default=90)
+    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes")
+    parser.add_argument("--families", type=names(FAMILIES), default=list(FAMILIES), help="comma-separated subset")
 
 
 # -- scenarios ------------------------------------------------------------------------------------

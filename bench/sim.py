@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from palletpilot.executor.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import load_scenario
 from palletpilot.sim.simulator import CONTROL_DT, Simulator
@@ -24,10 +25,10 @@ SCENARIO = bundled_path("missions") / "scenario_floor.yaml"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of this benchmark."""
-    parser.add_argument("--frames", type=int, default=60)
-    parser.add_argument("--sim-seconds", type=float, default=120.0)
+    parser.add_argument("--frames", type=count(1), default=60)
+    parser.add_argument("--sim-seconds", type=number(0.05, 36000.0, "s"), default=120.0)
     parser.add_argument("--width", type=int, default=640, choices=(640, 848))
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed, default=0)
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -3,7 +3,8 @@
 Exit codes: 0 success; 1 the mission failed (the vehicle is stopped, the reason printed); 2 bad input,
 one line per problem on stderr, never a traceback; 3 an output could not be written (for `run`: the
 mission succeeded but its report did not land; the line says which file); 128 + N a run cancelled by
-signal N (130 Ctrl-C / SIGINT, 143 SIGTERM), with the vehicle stopped and the report written.
+signal N (130 Ctrl-C / SIGINT, 143 SIGTERM), with the vehicle stopped and the report written; 70 an
+internal error (a bug), one line naming it (`PALLETPILOT_DEBUG=1` shows the traceback).
 
 Commands:
 - `palletpilot map check MAP [--vehicle VEHICLE.yaml]`
@@ -25,18 +26,24 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import sys
+import traceback
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
 from palletpilot.geometry import OutputError, PalletpilotError
+from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
 
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_WRITE_FAILED = 3
+EXIT_INTERNAL = 70
+"""An internal error (a bug): one line naming it, never a traceback unless PALLETPILOT_DEBUG is set."""
 
 DEMO_MISSION = "pickup_delivery.yaml"
 DEMO_SCENARIO = "scenario_demo.yaml"
@@ -60,8 +67,10 @@ def cmd_map_check(args: argparse.Namespace) -> int:
     """Validate a map file, including curvature against the vehicle."""
     from palletpilot.roadmap import check_map
 
-    kappa, vehicle = _max_curvature(args.map, args.vehicle)
+    vehicle_problems: list[str] = []  # a bad vehicle file and the map's own problems, all at once
+    kappa, vehicle = collect(vehicle_problems, lambda: _max_curvature(args.map, args.vehicle)) or (None, None)
     roadmap, problems = check_map(args.map, kappa)
+    problems = vehicle_problems + [p for p in problems if p not in vehicle_problems]
     if problems:
         for line in problems:
             print(line, file=sys.stderr)
@@ -104,6 +113,12 @@ def cmd_sim_render(args: argparse.Namespace) -> int:
     from palletpilot.sim.simulator import Simulator
 
     sim = Simulator(load_scenario(args.scenario), seed=args.seed, start=args.at)
+    mast = sim.vehicle.mast
+    if args.fork_height is not None and not mast.min_height <= args.fork_height <= mast.max_height:
+        raise PalletpilotError(
+            f"sim render: --fork-height: {args.fork_height:g} m is outside the mast's range "
+            f"{mast.min_height:g}..{mast.max_height:g} m"
+        )
     if args.fork_height is not None:
         sim.forklift.command_fork_height(args.fork_height)
         sim.forklift.state.fork_height = sim.forklift.fork_height_cmd
@@ -125,13 +140,17 @@ def _labelled(frames: list, model: str | None) -> list:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate T_forklift_camera from frame bundles of the forks and the floor."""
     from palletpilot.perception.calibration import calibrate
-    from palletpilot.perception.frames import load_bundle
+    from palletpilot.perception.frames import load_bundles
     from palletpilot.perception.specs import load_forks, pallet_type
     from palletpilot.perception.view import pickup_view
 
-    forks = load_forks(args.forks)
-    pallet = pallet_type(args.pallet)
-    frames = _labelled([load_bundle(p) for p in args.frames], args.model)
+    problems: list[str] = []  # every problem of every input, before any work
+    forks = collect(problems, lambda: load_forks(args.forks))
+    pallet = collect(problems, lambda: pallet_type(args.pallet))
+    loaded = collect(problems, lambda: load_bundles(args.frames, need_labels=True))
+    raise_problems(problems)
+    assert forks is not None and pallet is not None and loaded is not None
+    frames = _labelled(loaded, args.model)
     calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
     h, w = frames[0].depth.shape
     view = pickup_view(calibration.T_forklift_camera, frames[0].K, (w, h), forks, pallet)
@@ -264,7 +283,7 @@ def cmd_mission_diagram(args: argparse.Namespace) -> int:
 
 def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParser:
     """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`)."""
-    parser = argparse.ArgumentParser(prog="palletpilot", description="Mission executor for automated forklifts.")
+    parser = Parser(prog="palletpilot", description="Mission executor for automated forklifts.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     map_p = sub.add_parser("map", help="check or draw a map file")
@@ -275,7 +294,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     check.set_defaults(func=cmd_map_check)
     show = map_sub.add_parser("show", help="draw a map to a PNG")
     show.add_argument("map")
-    show.add_argument("--out", required=True, help="PNG file to write")
+    show.add_argument("--out", required=True, type=out_file(".png"), help="PNG file to write")
     show.add_argument("--route", nargs=2, metavar=("FROM", "TO"), help="also draw the planned route")
     show.set_defaults(func=cmd_map_show)
 
@@ -290,25 +309,27 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     run.add_argument("mission", nargs="?", help="mission file (YAML)")
     run.add_argument("--demo", action="store_true", help=f"the bundled demo: {DEMO_MISSION} in {DEMO_SCENARIO}")
     run.add_argument("--scenario", help="scenario file (default: the default simulated warehouse)")
-    run.add_argument("--seed", type=int, help="override the scenario's seed")
-    run.add_argument("--report", help="report folder (default out/run)")
+    run.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
+    run.add_argument("--report", type=out_folder, help="report folder (default out/run)")
     run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
     run.add_argument("--quiet", action="store_true", help="no live progress")
     run.add_argument("--clock", choices=("sim", "wall"), default="sim", help="simulated time (default) or real time")
-    run.add_argument("--journal", metavar="FILE", help="record the progress in this SQLite file (for --resume)")
+    run.add_argument(
+        "--journal", metavar="FILE", type=out_file(), help="record the progress in this SQLite file (for --resume)"
+    )
     run.add_argument("--resume", metavar="FILE", help="continue the interrupted run of this journal")
     run.set_defaults(func=cmd_run)
 
     examples = sub.add_parser("examples", help="the bundled example files: list them, or copy them to edit")
-    examples.add_argument("--out", help="copy them into this folder (existing files are left alone)")
+    examples.add_argument("--out", type=out_folder, help="copy them into this folder (existing files are left alone)")
     examples.set_defaults(func=cmd_examples)
 
     mission = sub.add_parser("mission", help="mission tools")
     mission_sub = mission.add_subparsers(dest="mission_command", required=True)
     diagram = mission_sub.add_parser("diagram", help="draw a task type's state machine (mermaid)")
     diagram.add_argument("task", help="pickup, pickup_no_adapt, delivery, move, charge, wait")
-    diagram.add_argument("--out", help="file to write (default: stdout)")
+    diagram.add_argument("--out", type=out_file(), help="file to write (default: stdout)")
     diagram.set_defaults(func=cmd_mission_diagram)
 
     cal = sub.add_parser("calibrate", help="calibrate the camera pose from the forks and the floor")
@@ -316,7 +337,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     cal.add_argument("--forks", required=True, help="fork geometry file (YAML)")
     cal.add_argument("--method", choices=("model", "paper"), default="model")
     cal.add_argument("--json", action="store_true", help="print the calibration as JSON")
-    cal.add_argument("--out", help="also write the JSON to this file (for estimate-pallet --calibration)")
+    cal.add_argument(
+        "--out", type=out_file(".json"), help="also write the JSON to this file (for estimate-pallet --calibration)"
+    )
     cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
     cal.add_argument("--pallet", default="eur", help="pallet type for the pickup view check: eur or a YAML file")
     cal.set_defaults(func=cmd_calibrate)
@@ -325,10 +348,12 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     sim_sub = sim.add_subparsers(dest="sim_command", required=True)
     render = sim_sub.add_parser("render", help="render one RGB-D frame bundle (.npz) of a scenario")
     render.add_argument("scenario")
-    render.add_argument("--out", required=True, help="frame bundle to write (.npz)")
-    render.add_argument("--fork-height", type=float, help="fork height (m) for the frame")
+    render.add_argument("--out", required=True, type=out_file(".npz"), help="frame bundle to write (.npz)")
+    render.add_argument(
+        "--fork-height", type=number(0.0, 20.0, "m"), help="fork height (m) for the frame, within the mast's range"
+    )
     render.add_argument("--at", help="node to stand at (default: the scenario's start)")
-    render.add_argument("--seed", type=int, help="override the scenario's seed")
+    render.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     render.set_defaults(func=cmd_sim_render)
 
     # Commands defined next to the code they drive.
@@ -367,6 +392,19 @@ def main(argv: Sequence[str] | None = None, extensions: Sequence[Extension] = ()
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except MemoryError:
+        print("palletpilot: out of memory (an input too large for this machine?)", file=sys.stderr)
+        return EXIT_INTERNAL
+    except Exception as exc:  # a bug, not an input problem: one line, the traceback only when asked
+        if os.environ.get("PALLETPILOT_DEBUG"):
+            raise
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        print(
+            f"palletpilot: internal error: {type(exc).__name__}: {exc} (at {Path(where.filename).name}:{where.lineno}; "
+            "a bug: please report it with the command line; PALLETPILOT_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

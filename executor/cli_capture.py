@@ -16,22 +16,18 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from palletpilot.executor.cli_args import count, names, out_folder
 from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.realsense import FILTER_NAMES
 
 DEFAULT_COUNT = 10
-
-
-def _filters(text: str | None) -> list[str]:
-    return [name.strip() for name in text.split(",") if name.strip()] if text else []
 
 
 def cmd_capture(args: argparse.Namespace) -> int:
     """Save frame bundles from a live camera or a recording into `--out`; return the exit code."""
     from palletpilot.perception.realsense import capture_from_camera, extract_recording
 
-    if args.count is not None and args.count < 1:
-        raise PerceptionError(f"capture: --count must be >= 1, got {args.count}")
-    filters = _filters(args.filters)
+    filters = args.filters or []
     if args.recording is not None:
         live_only = [f"--{name}" for name in ("serial", "width", "fps", "warmup") if getattr(args, name) is not None]
         if live_only:
@@ -56,12 +52,16 @@ def cmd_capture(args: argparse.Namespace) -> int:
 def add_parsers(subparsers: Any) -> None:
     """Register `capture` on the `palletpilot` sub-command parsers (`parser.add_subparsers()`)."""
     p = subparsers.add_parser("capture", help="save RGB-D frame bundles from a RealSense camera or recording")
-    p.add_argument("--out", required=True, help="folder for frame_0000.npz, ... (must not hold bundles yet)")
+    p.add_argument(
+        "--out", required=True, type=out_folder, help="folder for frame_0000.npz, ... (must not hold bundles yet)"
+    )
     p.add_argument("--recording", metavar="FILE", help="extract from this recording (.db3; .bag if the SDK reads it)")
-    p.add_argument("--count", type=int, help=f"number of bundles (live default {DEFAULT_COUNT}; recording: all)")
+    p.add_argument("--count", type=count(1), help=f"number of bundles (live default {DEFAULT_COUNT}; recording: all)")
     p.add_argument("--serial", help="camera serial number (default: the first camera found)")
     p.add_argument("--width", type=int, choices=(640, 848), help="stream width, height 480 (default 640)")
     p.add_argument("--fps", type=int, choices=(15, 30), help="frame rate (default 30)")
-    p.add_argument("--filters", help="depth filters, comma separated: spatial,temporal,hole_filling")
-    p.add_argument("--warmup", type=int, help="live frames dropped before saving (default 30)")
+    p.add_argument(
+        "--filters", type=names(FILTER_NAMES), help="depth filters, comma separated: spatial,temporal,hole_filling"
+    )
+    p.add_argument("--warmup", type=count(0, 10_000), help="live frames dropped before saving (default 30)")
     p.set_defaults(func=cmd_capture)

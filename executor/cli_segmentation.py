@@ -16,6 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
+from palletpilot.executor.cli_args import count, out_folder, seed
+
 EXIT_OK = 0
 
 
@@ -73,10 +75,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     seg_sub = seg.add_subparsers(dest="segment_command", required=True)
 
     ds = seg_sub.add_parser("dataset", help="render simulator frame bundles for training or evaluation")
-    ds.add_argument("out_dir", type=Path)
-    ds.add_argument("--frames", type=int, required=True, help="number of frames")
-    ds.add_argument("--seed", type=int, default=0)
-    ds.add_argument("--start", type=int, default=0, help="index of the first frame (to extend a dataset)")
+    ds.add_argument("out_dir", type=out_folder)
+    ds.add_argument("--frames", type=count(1), required=True, help="number of frames")
+    ds.add_argument("--seed", type=seed, default=0)
+    ds.add_argument("--start", type=count(0), default=0, help="index of the first frame (to extend a dataset)")
     ds.add_argument(
         "--mounts",
         choices=("all", "pickup"),
@@ -92,6 +94,6 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         p = seg_sub.add_parser(name, help=text)
         p.add_argument("data_dir", type=Path)
         p.add_argument("--model", type=Path, default=DEFAULT_MODEL)
-        p.add_argument("--frames", type=int, default=None, help="use only the first N bundles")
+        p.add_argument("--frames", type=count(1), default=None, help="use only the first N bundles")
         p.add_argument("--json", action="store_true")
         p.set_defaults(func=func)
