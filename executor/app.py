@@ -37,6 +37,7 @@ from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
 from palletpilot.executor.trajectory_log import TrajectoryLog
 from palletpilot.geometry import OutputError
+from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
@@ -75,6 +76,7 @@ def default_scenario(mission: Mission) -> Scenario:
         }
     )
     sc.folder = missions
+    sc.source = f"{mission.map_path} (the default warehouse)"
     return sc
 
 
@@ -117,14 +119,7 @@ def run_simulated(
     file that records the progress for `resume_simulated`. `on_start(runner)` is called once the
     runner exists and before it runs. `controls`: pause / cancel flags (the CLI's signal handlers).
     """
-    mission = load_mission(mission_path)
-    if scenario is None:
-        scenario = load_scenario(scenario_path) if scenario_path else default_scenario(mission)
-    sim = Simulator(scenario, seed=seed)
-    roadmap = load_map(mission.map_path)
-    vehicle_file = map_vehicle_file(mission.map_path)
-    vehicle = load_vehicle(vehicle_file) if vehicle_file else sim.vehicle
-    _validate(mission, roadmap, vehicle, scenario, str(mission_path), scenario_path)
+    mission, roadmap, vehicle, sim, scenario = _load_run(mission_path, scenario_path, scenario, seed)
     folder = Path(report_dir).resolve() if report_dir is not None else None
     book = None
     if journal is not None:
@@ -163,33 +158,67 @@ def run_simulated(
     )
 
 
-def _validate(
-    mission: Mission,
-    roadmap: Roadmap,
-    vehicle: VehicleParams,
-    scenario: Scenario,
-    where: str,
-    scenario_path: str | Path | None,
-) -> None:
-    """The mission's checks (`validate_mission`) plus: the scenario's map is the mission's (same content)."""
-    problems = []
+def _load_run(
+    mission_path: str | Path, scenario_path: str | Path | None, scenario: Scenario | None, seed: int | None
+) -> tuple[Mission, Roadmap, VehicleParams, Simulator, Scenario]:
+    """Read and check every input of a run before anything moves; all problems of all files at once.
+
+    Order: the mission's schema, its map, the scenario's schema; then the tasks against the map and the
+    vehicle (from the scenario's start, or the default warehouse's charger), and the scenario against
+    the map (its start, pallet nodes, overlaps) by building the simulator. A `MissionError` (or the
+    first file's own error) lists every line.
+    """
+    where = str(mission_path)
+    mission = load_mission(mission_path)  # the rest needs its map and tasks
+    problems: list[str] = []
+    roadmap = collect(problems, lambda: load_map(mission.map_path))
+    if scenario is None and scenario_path is not None:
+        scenario = collect(problems, lambda: load_scenario(scenario_path))
+        if scenario is None:
+            raise_problems(problems, MissionError)
+    if roadmap is None:
+        raise_problems(problems, MissionError)
+    assert roadmap is not None
+    vehicle_file = map_vehicle_file(mission.map_path)
+    if vehicle_file is None and scenario is not None and scenario.vehicle:
+        vehicle_file = scenario.path(scenario.vehicle)
+    vehicle = collect(problems, lambda: load_vehicle(vehicle_file)) if vehicle_file is not None else None
+    start = scenario.start if scenario is not None else _default_start(roadmap)
+    if scenario is not None:
+        problems += _map_mismatch(mission, scenario, scenario_path)
+    elif start is None:
+        problems.append(f"{mission.map_path}: no charging node to start the default warehouse from")
+    if vehicle is not None:  # without one the simulator says why
+        # from an unknown start (the scenario's problem) only the tasks themselves are checked
+        valid_start = start if start is not None and start in roadmap else None
+        collect(problems, lambda: validate_mission(mission, roadmap, vehicle, valid_start, where))
+    if scenario is None and not problems:
+        scenario = default_scenario(mission)
+    sim = collect(problems, lambda: Simulator(scenario, seed=seed)) if scenario is not None else None
+    raise_problems(problems, MissionError)
+    assert sim is not None and scenario is not None
+    return mission, roadmap, vehicle or sim.vehicle, sim, scenario
+
+
+def _default_start(roadmap: Roadmap) -> str | None:
+    """Where the default warehouse starts the forklift: the map's first charging node."""
+    return next((n.id for n in roadmap.nodes() if n.type is NodeType.CHARGING), None)
+
+
+def _map_mismatch(mission: Mission, scenario: Scenario, scenario_path: str | Path | None) -> list[str]:
+    """A problem line when the scenario's map is not the mission's (same content), else []."""
     scenario_map = scenario.path(scenario.map)
     try:
         same = _sha256(scenario_map) == _sha256(mission.map_path)
     except ResumeError:  # unreadable: the map loaders name the file
-        same = False
-    if not same:
-        source = scenario_path if scenario_path is not None else "the scenario"
-        problems.append(
-            f"{source}: map: {scenario_map} is not the mission's map {mission.map_path}: the simulated "
-            "warehouse must be the one the mission plans on"
-        )
-    try:
-        validate_mission(mission, roadmap, vehicle, scenario.start, where)
-    except MissionError as exc:
-        problems += exc.problems
-    if problems:
-        raise MissionError(problems[0] if len(problems) == 1 else f"{where}: {len(problems)} problems", problems)
+        return []
+    if same:
+        return []
+    source = scenario_path if scenario_path is not None else "the scenario"
+    return [
+        f"{source}: map: {scenario_map} is not the mission's map {mission.map_path}: the simulated "
+        "warehouse must be the one the mission plans on"
+    ]
 
 
 def resume_simulated(

@@ -26,6 +26,7 @@ import open3d as o3d
 from palletpilot.control.safety import FIELD_SETS, SafetyState
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
@@ -68,14 +69,7 @@ class Simulator(PalletPhysics):
         self.scenario = scenario
         self.seed = scenario.seed if seed is None else seed
         self.rng = np.random.default_rng(self.seed)
-        self.roadmap: Roadmap = load_map(scenario.path(scenario.map))
-        vehicle_path = (
-            scenario.path(scenario.vehicle) if scenario.vehicle else map_vehicle_file(scenario.path(scenario.map))
-        )
-        if vehicle_path is None:
-            raise SimError(f"{scenario.folder}: the scenario names no vehicle file and its map has none")
-        self.vehicle: VehicleParams = load_vehicle(vehicle_path)
-        self.forks: ForkGeometry = load_forks(scenario.path(scenario.forks))
+        self.roadmap, self.vehicle, self.forks = _load_references(scenario, start)
         self.pallet_type = PalletType.eur()
         self._pallet_parts = self.pallet_type.parts()
         self._part_lo = np.array([p.lo for p in self._pallet_parts])
@@ -111,8 +105,6 @@ class Simulator(PalletPhysics):
                 self.pallets.append(SimPallet("", T_world_pallet, placement.loaded, id=f"pallets[{i}]"))
                 continue
             node = self.roadmap.node(placement.node)
-            if node.type is not NodeType.PALLET:
-                raise SimError(f"{scenario.folder}: pallet placed at '{node.id}', a {node.type.value} node")
             misplacement = SE2(placement.dx, placement.dy, math.radians(placement.dyaw_deg)).to_se3()
             T_world_pallet = pallet_pose_at_node(node.pose, node.height) @ misplacement
             self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded, id=node.id))
@@ -122,6 +114,7 @@ class Simulator(PalletPhysics):
         self._forks_local = forks_mesh(self.forks, 0.0, SE3.identity())  # forklift frame, lift height 0
         self._renderer: RaycastRenderer | None = None
         self._beam_scene: o3d.t.geometry.RaycastingScene | None = None
+        raise_problems(overlap_problems(self._start_solids(), scenario.source, start_id), SimError)
 
     # -- world ----------------------------------------------------------------------------
     def _perturbed_mount(self) -> SE3:
@@ -132,6 +125,14 @@ class Simulator(PalletPhysics):
         d_xyz = self.rng.normal(0.0, p.xyz_sigma, 3)
         d_rpy = np.radians(self.rng.normal(0.0, p.angle_sigma_deg, 3))
         return SE3.from_translation(*d_xyz) @ mount @ SE3.from_xyz_rpy((0, 0, 0), d_rpy)
+
+    def _start_solids(self) -> tuple[list[Solid], list[tuple[str, list[Solid]]]]:
+        """The truck at its start, and every placed thing (pallets by scenario index, clutter, racks)."""
+        hull, forks = self._truck_solids()
+        things = [(f"pallets[{i}]", self._pallet_solids(p)) for i, p in enumerate(self.pallets)]
+        things += [(s.id if s.kind != "rack" else f"the rack at '{s.id}'", [s]) for s in self._fixed_solids]
+        things += [(s.id, [s]) for s in self._walker_solids()]
+        return hull + forks, things
 
     def _build_racks(self) -> list[RackSupport]:
         racks = []
@@ -525,6 +526,63 @@ class Simulator(PalletPhysics):
         if abs(self.speed) < 1e-3 and any(here.distance_to(c) < 0.3 for c in self._chargers):
             level += battery.charge_per_min * dt / 60.0
         self.battery_level = min(max(level, 0.0), 1.0)
+
+
+def _load_references(scenario: Scenario, start: str | None) -> tuple[Roadmap, VehicleParams, ForkGeometry]:
+    """The scenario's map, vehicle and forks, with its node references checked: every problem of every
+    file and field is one line of the `SimError` (`scenario.yaml: pallets[2].node: unknown node 'x'`)."""
+    where, problems = scenario.source, list[str]()
+    map_path = scenario.path(scenario.map)
+    roadmap = collect(problems, lambda: load_map(map_path))
+    vehicle_path = (
+        scenario.path(scenario.vehicle) if scenario.vehicle else collect(problems, lambda: map_vehicle_file(map_path))
+    )
+    vehicle = None
+    if vehicle_path is None and not problems:
+        problems.append(f"{where}: vehicle: the scenario names no vehicle file and its map has none")
+    elif vehicle_path is not None:
+        vehicle = collect(problems, lambda: load_vehicle(vehicle_path))
+    forks = collect(problems, lambda: load_forks(scenario.path(scenario.forks)))
+    if roadmap is not None:
+        field, node_id = ("start", scenario.start) if start is None else ("--at", start)
+        if node_id not in roadmap:
+            problems.append(f"{where}: {field}: unknown node '{node_id}' (not in {scenario.map})")
+        for i, placement in enumerate(scenario.pallets):
+            if placement.node is None:
+                continue
+            if placement.node not in roadmap:
+                problems.append(f"{where}: pallets[{i}].node: unknown node '{placement.node}' (not in {scenario.map})")
+            elif (node := roadmap.node(placement.node)).type is not NodeType.PALLET:
+                problems.append(
+                    f"{where}: pallets[{i}].node: '{node.id}' is a {node.type.value} node, not a pallet node"
+                )
+        placed = [p.node for p in scenario.pallets if p.node is not None]
+        for node_id in sorted({n for n in placed if placed.count(n) > 1}):
+            problems.append(f"{where}: pallets: two pallets placed at node '{node_id}'")
+    raise_problems(problems, SimError)
+    assert roadmap is not None and vehicle is not None and forks is not None
+    return roadmap, vehicle, forks
+
+
+def overlap_problems(
+    start: tuple[list[Solid], list[tuple[str, list[Solid]]]], where: str, start_node: str, tol: float = 0.01
+) -> list[str]:
+    """Placements that cannot be: the truck at its start node touching anything, and pallets overlapping
+    each other or anything else (people, boxes, racks, walls) by more than `tol` (m).
+
+    People and boxes may stand next to each other (a person beside a box is no fault of the scenario).
+    """
+    truck, things = start
+    problems = []
+    for name, solids in things:
+        if first_contact(truck, solids, tol):
+            problems.append(f"{where}: start: the truck at '{start_node}' overlaps {name}")
+    pallets = [(n, s) for n, s in things if n.startswith("pallets[")]
+    for i, (name, solids) in enumerate(pallets):
+        for other, theirs in [*pallets[i + 1 :], *[t for t in things if not t[0].startswith("pallets[")]]:
+            if first_contact(solids, theirs, tol):
+                problems.append(f"{where}: {name} overlaps {other}")
+    return problems
 
 
 def _person_solid(id_: str, pose: SE2) -> Solid:
