@@ -16,6 +16,7 @@ Commands:
 - `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]
   [--pallet eur|FILE.yaml]`; it also checks that the calibrated mount shows a pallet's entry face and
   load at the Pickup's distances (`perception.view`), with a warning on stderr when it does not
+- `palletpilot forks measure FRAME.npz [...] --forks FORKS.yaml --out NEW_FORKS.yaml` (the blade's taper)
 - `palletpilot capture --out DIR [--count N] [--serial S]`, `palletpilot capture --recording FILE --out DIR`
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
 - `palletpilot bench NAME [--json] [bench options]` is added by `palletpilot.cli` (see `bench/`)
@@ -174,6 +175,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             print(f"  pickup    the entry face and a load are in view {lo:.2f}-{hi:.2f} m ahead of the fork tips")
     for problem in problems:  # the calibration is good; the mount may still not suit the Pickup
         print(f"warning: camera mount: {problem}", file=sys.stderr)
+    for warning in calibration.warnings:  # e.g. fork tips that cannot be trusted (`perception.calibration`)
+        print(f"warning: calibration: {warning}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -359,6 +362,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     # Commands defined next to the code they drive.
     for module in (
         "palletpilot.executor.cli_capture",
+        "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
         "palletpilot.executor.cli_segmentation",
     ):

@@ -100,6 +100,8 @@ class CalibrateCamera(Behaviour):
         ctx.calibration = calibration
         ctx.record.setdefault("calibrations", []).append(calibration.to_json())
         ctx.log("calibrated", xyz_m=calibration.to_json()["xyz_m"], quality=calibration.quality)
+        if calibration.warnings:  # e.g. fork tips that cannot be trusted: the forks file needs the taper
+            ctx.log("calibration_warning", warnings=list(calibration.warnings))
         self._check_view(ctx, calibration)
         return "done"
 

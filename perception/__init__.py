@@ -11,7 +11,9 @@ Public API:
   `pallet_pose_at_node` / `node_pose_for_pallet` (pallet node <-> `T_world_pallet`, entry face
   `ENTRY_GAP_M` ahead of the fork heels).
 - `perception.calibration`: `calibrate` (`T_forklift_camera` from fork and floor frames; `model` and
-  `paper` methods), `Calibrator` (keeps the last good calibration), `CalibrationError`;
+  `paper` methods), `Calibrator` (keeps the last good calibration), `CalibrationError`, warnings when
+  the fork tips cannot be trusted; `perception.calibration_paper`: the paper's method (the baseline);
+  `perception.fork_profile`: `forks measure`, the blade's taper estimated from frames of the forks;
   `perception.calibration_io`: `Calibration` and its JSON; `perception.view`: `pickup_view` (does a
   mount show the entry face and a load at the Pickup's distances).
 - `perception.pallet`: `estimate_pallet` (`T_forklift_pallet` / `T_world_pallet` with a spread from one

@@ -44,18 +44,15 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE3
-from palletpilot.perception.calibration_io import R_LEVEL, Calibration
-from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.calibration_paper import paper_fit
+from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.perception.pointcloud import check_intrinsics, class_mask, deproject
 from palletpilot.perception.specs import ForkGeometry
 
 Method = Literal["model", "paper"]
 METHODS: tuple[Method, ...] = ("model", "paper")
-
-
-class CalibrationError(PerceptionError):
-    """The frames do not allow a calibration; the message says which feature is missing or how far off."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +62,7 @@ class Limits:
     min_floor_points: int = 2000
     min_fork_points: int = 1500
     min_tip_edges: int = 8
+    min_beyond_points: int = 9  # fork pixels beyond the fitted tips that make them untrusted (`_tip_check`)
     floor_rms: float = 0.010  # plus the stereo noise expected at the floor's median depth (raised forks)
     fork_rms: float = 0.008
     tip_rms: float = 0.010
@@ -74,6 +72,8 @@ class Limits:
 
 
 LIMITS = Limits()
+BEYOND_MIN_M, BEYOND_MAX_M = 0.02, 0.25
+"""Fork pixels this far ahead of the fitted tips (m) mean that the tips cannot be trusted (`_tip_check`)."""
 _RNG_SEED = 0  # RANSAC and subsampling are seeded: same frames, same result
 
 
@@ -162,14 +162,25 @@ def _fit_floor(points: np.ndarray, limits: Limits, where: str) -> tuple[np.ndarr
 
 
 def _fork_distance(q: np.ndarray, forks: ForkGeometry) -> np.ndarray:
-    """Distance (m) of points (forklift frame at lift 0) to the nearer fork's surfaces.
+    """Distance (m) of points (forklift frame at lift 0) to the nearer fork's surfaces (the file's profile).
 
     The forks mirror each other about y = 0, so y folds onto one fork: |y| - centre_y. The fork is
-    open towards the back (the heels are out of view and the carriage is not a fork).
+    open towards the back (the heels are out of view and the carriage is not a fork). The top and
+    bottom faces follow the blade profile (`ForkGeometry.top_z`, `bottom_z`: a taper, the heel fillet);
+    a sloping face's distance is its vertical offset times the cosine of its slope.
     """
     half_w = 0.5 * forks.width
     dy = np.abs(np.abs(q[:, 1]) - forks.centre_y) - half_w  # > 0 outside the fork sideways
-    dz = np.abs(q[:, 2] - 0.5 * forks.thickness) - 0.5 * forks.thickness
+    top, bottom = forks.top_z(q[:, 0]), forks.bottom_z(q[:, 0])
+    if forks.tapered:
+        slope = (forks.thickness - forks.tip_top_z + float(forks.bottom_z(forks.tip_x))) / forks.taper_length
+        in_taper = q[:, 0] > forks.taper_start_x
+        cos = 1.0 / math.sqrt(1.0 + slope * slope)
+        top_cos = np.where(in_taper & (forks.taper_side == "top"), cos, 1.0)
+        bottom_cos = np.where(in_taper & (forks.taper_side == "bottom"), cos, 1.0)
+    else:
+        top_cos = bottom_cos = np.ones(len(q))
+    dz = np.maximum((q[:, 2] - top) * top_cos, (bottom - q[:, 2]) * bottom_cos)  # > 0 above or below
     dx = q[:, 0] - forks.tip_x
     outside = np.sqrt(np.maximum(dx, 0.0) ** 2 + np.maximum(dy, 0.0) ** 2 + np.maximum(dz, 0.0) ** 2)
     inside = -np.maximum(np.maximum(dx, dy), dz)  # distance to the nearest face from within
@@ -193,16 +204,18 @@ class _Edges:
     side_sign: np.ndarray  # (M,) +1 left fork (y > 0), -1 right fork
 
 
-def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, tip_window: float = 0.04) -> _Edges:
+def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, full_x: float, tip_window: float = 0.04) -> _Edges:
     """Rays through the forks' depth edges against the floor, found by scanning the depth image.
 
-    A fork's top face ends where the camera starts to see beyond it (the floor, 5 cm lower): at the
-    tips, scanning up each column, and along the outer sides, scanning sideways along each row. The
-    edge lies between the last pixel on the fork-top plane and the first pixel seeing beyond it;
-    pixels matching neither surface (mixed, flying, no data) in between count as unknown. The ray through the middle of
-    that interval (at most 4 px) has no quantisation bias. Each edge point is then classified by where
-    it lies on the forks under the current estimate `T` (forklift frame at lift 0); tips are looked
-    for within `tip_window` (m) of `tip_x`.
+    A fork ends where the camera starts to see beyond it (the floor, lower): at the tips, scanning up
+    each column, and along the outer sides, scanning sideways along each row. A pixel is on the fork
+    when it sees something clearly above the floor within the fork's footprint, at any height: a
+    tapered tip is as good as a full-thickness one. The edge lies between the last pixel on the fork
+    and the first pixel on the floor; pixels matching neither (mixed, flying, no data) in between count
+    as unknown. The ray through the middle of that interval (at most 4 px) has no quantisation bias.
+    Edge rays are then placed on the forks under the current estimate `T` (forklift frame at lift 0):
+    tips where the ray grazes the blade's profile (`_tip_offsets`) within `tip_window` (m) of it;
+    outer sides on the full-thickness top face, behind `full_x`.
     """
     depth = data.frame.depth
     shape = depth.shape
@@ -216,30 +229,24 @@ def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, tip_window: float 
     R, t = T.R, T.t
     rays = np.column_stack([cols, rows, np.ones(len(rows))]) @ data.K_inv.T
     along_up = rays @ R[2]  # forklift z component of each ray
-
-    def plane_depth(z_plane: float) -> np.ndarray:
-        """z-depth where each ray meets the horizontal plane z_F = z_plane (inf: never)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_ = (z_plane - t[2]) / along_up
-        s_[~(s_ > 0)] = np.inf
-        return s_
-
-    s_top = plane_depth(forks.thickness)
-    s_floor = plane_depth(-data.frame.fork_height)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_floor = (-data.frame.fork_height - t[2]) / along_up  # z-depth of the floor along each ray
+    s_floor[~(s_floor > 0)] = np.inf
     z = depth[rows, cols]
     valid = np.isfinite(z) & (z > 0)
-    # Each pixel against both surfaces: fork top, floor, or neither (mixed, flying, no data).
-    top_ok = np.isfinite(s_top)
-    on_top = valid & top_ok & (np.abs(z - s_top) < _depth_tolerance(np.where(top_ok, s_top, 0.0)))
     floor_ok = np.isfinite(s_floor)
-    beyond = valid & floor_ok & ~on_top & (np.abs(z - s_floor) < _depth_tolerance(np.where(floor_ok, s_floor, 0.0)))
-    q = (rays * np.where(top_ok, s_top, 0.0)[:, None]) @ R.T + t
-    near_forks = (np.abs(np.abs(q[:, 1]) - forks.centre_y) < 0.5 * forks.width + 0.03) & (q[:, 0] > forks.heel_x)
-    near_forks &= q[:, 0] < forks.tip_x + tip_window + 0.01
-    fg = on_top & near_forks
-    # Codes: 0 unknown (also everywhere off the band), 1 fork top near the forks, 2 floor, 3 other top.
+    tol = _depth_tolerance(np.where(floor_ok, s_floor, 0.0))
+    beyond = valid & floor_ok & (np.abs(z - s_floor) < tol)  # on the floor
+    above = valid & ~beyond & (~floor_ok | (z < s_floor - tol))  # nearer than the floor: something on it
+    q = (rays * np.where(valid, z, 0.0)[:, None]) @ R.T + t  # the pixel's own point (noisy depth)
+    margin = 0.03 + 2.0 * _depth_tolerance(np.where(valid, z, 0.0)) / 3.0
+    near_forks = np.abs(np.abs(q[:, 1]) - forks.centre_y) < 0.5 * forks.width + margin
+    near_forks &= (q[:, 0] > forks.heel_x) & (q[:, 0] < forks.tip_x + tip_window + margin)
+    near_forks &= q[:, 2] < forks.thickness + forks.heel_radius + margin
+    fg = above & near_forks
+    # Codes: 0 unknown (also everywhere off the band), 1 on a fork, 2 floor, 3 something else above the floor.
     code = np.zeros(shape, np.int8)
-    code[rows, cols] = np.where(fg, 1, np.where(beyond, 2, np.where(on_top, 3, 0)))
+    code[rows, cols] = np.where(fg, 1, np.where(beyond, 2, np.where(above, 3, 0)))
     fr, fc = rows[fg], cols[fg]
 
     def scan(dr: int, dc: int) -> np.ndarray:
@@ -258,12 +265,13 @@ def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, tip_window: float 
 
     vertical = scan(-1, 0)  # up the columns: away from the forklift
     sideways = np.vstack([scan(0, -1), scan(0, 1)])
-    half_w, margin = 0.5 * forks.width, 0.012
-    pv = _hit_plane(vertical, T, forks.thickness)
-    tip = (np.abs(pv[:, 0] - forks.tip_x) < tip_window) & (np.abs(np.abs(pv[:, 1]) - forks.centre_y) < half_w - margin)
+    half_w, margin_y = 0.5 * forks.width, 0.012
+    off, y_tip = _tip_offsets(vertical, T, forks)
+    tip = (np.abs(off) < tip_window) & (np.abs(np.abs(y_tip) - forks.centre_y) < half_w - margin_y)
     ps = _hit_plane(sideways, T, forks.thickness)
     outer = forks.centre_y + half_w
-    side = (np.abs(np.abs(ps[:, 1]) - outer) < 0.02) & (ps[:, 0] < forks.tip_x - 0.03)
+    side = (np.abs(np.abs(ps[:, 1]) - outer) < 0.02) & (ps[:, 0] < min(full_x, forks.tip_x - 0.03))
+    side &= ps[:, 0] > forks.heel_x + forks.heel_radius
     return _Edges(vertical[tip], sideways[side], np.sign(ps[side, 1]))
 
 
@@ -319,7 +327,34 @@ def _initial_pose(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limit
     return SE3(Rotation.from_matrix(R_FC), t)
 
 
-def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, where: str) -> tuple[SE3, dict]:
+def _tip_offsets(rays: np.ndarray, T: SE3, forks: ForkGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """How far (m, along x) each tip edge ray passes beyond the blade's profile, and y where it touches it.
+
+    The camera sees the blade end where a ray grazes the blade's roof: the top edge of the tip, or, on
+    a blade whose top face slopes away faster than the camera looks down, the start of the taper.
+    The roof is convex, so the ray touches it at one of its corners: the offset is the smallest
+    `x_ray(z_v) - x_v` over the corners v (0 for a ray through the edge; > 0 passes beyond).
+    """
+    d = rays @ T.R.T
+    c = T.t
+    corners = [(forks.tip_x, forks.tip_top_z)]
+    if forks.tapered and forks.taper_side == "top":
+        corners.append((forks.taper_start_x, forks.thickness))
+    best = np.full(len(rays), np.inf)
+    y = np.zeros(len(rays))
+    for x_v, z_v in corners:
+        s = (z_v - c[2]) / d[:, 2]
+        off = c[0] + s * d[:, 0] - x_v
+        better = off < best
+        best = np.where(better, off, best)
+        y = np.where(better, c[1] + s * d[:, 1], y)
+    return best, y
+
+
+def _model_fit(
+    data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, where: str
+) -> tuple[SE3, dict, list[str]]:
+    """The `model` fit: the pose, the quality figures and warnings (`_tip_check`)."""
     rng = np.random.default_rng(_RNG_SEED)
     T0 = _initial_pose(data, forks, limits, where)
 
@@ -328,16 +363,20 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
 
     floors = [subsample(fd.floor, 1500) for fd in data]
     lifts = [fd.frame.fork_height for fd in data]
+    full_x = forks.taper_start_x - 0.01 if forks.tapered and forks.taper_side == "top" else forks.tip_x
     T = T0
     stats: dict = {}
+    fork_sets: list[np.ndarray] = []
+    edge_sets: list[_Edges] = []
     for round_ in range(2):
         # Evidence against the current estimate: forks near the model, tips from the depth image.
         fork_sets, edge_sets = [], []
         for fd in data:
             q = T.apply(fd.forks)
             keep = _fork_distance(q, forks) < (0.03 if round_ == 0 else 0.01)
+            keep &= q[:, 0] > forks.heel_x + forks.heel_radius + 0.01
             fork_sets.append(subsample(fd.forks[keep], 2000))
-            edge_sets.append(_edge_rays(fd, T, forks, tip_window=0.15 if round_ == 0 else 0.03))
+            edge_sets.append(_edge_rays(fd, T, forks, full_x, tip_window=0.3 if round_ == 0 else 0.03))
         n_tips = sum(len(e.tips) for e in edge_sets)
         n_sides = sum(len(e.sides) for e in edge_sets)
         if n_tips < limits.min_tip_edges:
@@ -351,10 +390,10 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
             for floor, fork_pts, edges, lift in zip(floors, fork_sets, edge_sets, lifts, strict=True):
                 res.append(Tx.apply(floor)[:, 2] + lift)  # the floor is at z = -lift below the carriage
                 res.append(_fork_distance(Tx.apply(fork_pts), forks))
-                # Edge rays meet the fork-top plane at the tips (x = tip_x) and the outer sides. The tips
+                # Edge rays graze the blade's profile at the tips and meet the outer sides. The tips
                 # count as one mean constraint on x, weighted by their number: the tip edge runs along
                 # the pixel grid, so per-fork quantisation must not tilt the yaw (the sides set it).
-                tip_x = _hit_plane(edges.tips, Tx, forks.thickness)[:, 0] - forks.tip_x
+                tip_x = _tip_offsets(edges.tips, Tx, forks)[0]
                 res.append(np.atleast_1d(math.sqrt(len(tip_x)) * tip_x.mean()) if len(tip_x) else np.zeros(0))
                 side_y = _hit_plane(edges.sides, Tx, forks.thickness)[:, 1]
                 res.append(edges.side_sign * side_y - (forks.centre_y + 0.5 * forks.width))
@@ -372,7 +411,7 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
 
     floor_res = np.concatenate([T.apply(f)[:, 2] + lift for f, lift in zip(floors, lifts, strict=True)])
     fork_res = np.concatenate([_fork_distance(T.apply(f), forks) for f in fork_sets])
-    tip_res = np.concatenate([_hit_plane(e.tips, T, forks.thickness)[:, 0] - forks.tip_x for e in edge_sets])
+    tip_res = np.concatenate([_tip_offsets(e.tips, T, forks)[0] for e in edge_sets])
 
     def robust_rms(r: np.ndarray) -> float:
         inl = np.abs(r) < 0.02
@@ -395,89 +434,79 @@ def _model_fit(data: Sequence[_FrameData], forks: ForkGeometry, limits: Limits, 
             raise CalibrationError(
                 f"{where}: {key} {quality[key] * 1e3:.1f} mm is above the limit {limit * 1e3:.1f} mm"
             )
-    return T, quality
+    warnings: list[str] = []
+    quality.update(_tip_check(data, edge_sets, T, forks, limits, warnings))
+    return T, quality, warnings
+
+
+def _tip_check(
+    data: Sequence[_FrameData],
+    edge_sets: Sequence[_Edges],
+    T: SE3,
+    forks: ForkGeometry,
+    limits: Limits,
+    warnings: list[str],
+) -> dict:
+    """Does anything of the forks reach beyond the fitted tips? Then the tips cannot be trusted.
+
+    A blade whose profile the file does not give (a taper stated as the nominal box) shows its
+    full-thickness top face ending before the tip, and the camera may see nothing of the taper's top
+    (it slopes away as steeply as the camera looks down); the thinner rest (its sloping top or the
+    strip of its inner side face) still stands above the floor beyond where the fit put the tips.
+    Counted: pixels clearly above the floor within the forks' footprint, `BEYOND_MIN_M` ..
+    `BEYOND_MAX_M` ahead of the tips and at least 3 image rows off the tip edge in their column (mixed
+    pixels along a tip edge lie within a row or two of it); depth-edge pixels count along the inner
+    sides only (that strip is narrow; mixed pixels along the outer sides fly beyond the tips). A
+    sloping top seen with the wrong tip height lands there as well: it lies lower than the file says,
+    so its points map beyond the tips.
+    """
+    reach_all: list[np.ndarray] = []
+    for fd, edges in zip(data, edge_sets, strict=True):
+        if not len(edges.tips):
+            continue
+        uv = edges.tips @ fd.frame.K.T
+        order = np.argsort(uv[:, 0])
+        r0 = max(int(uv[:, 1].min()) - 80, 0)
+        depth = fd.frame.depth[r0 : int(uv[:, 1].max()) + 60]
+        valid = np.isfinite(depth) & (depth > 0)
+        rows, cols = np.nonzero(valid)
+        rows += r0
+        # At least 3 rows off the tip edge in the pixel's column (mixed pixels lie within a row or two).
+        off_edge = np.abs(rows - np.interp(cols, uv[order, 0], uv[order, 1])) >= 3.0
+        rows, cols = rows[off_edge], cols[off_edge]
+        mixed = fd.edge[rows, cols]
+        rays = np.column_stack([cols, rows, np.ones(len(rows))]) @ fd.K_inv.T
+        z = fd.frame.depth[rows, cols]
+        q = T.apply(rays * z[:, None])
+        ahead = q[:, 0] - forks.tip_x
+        sel = (ahead > BEYOND_MIN_M) & (ahead < BEYOND_MAX_M)
+        sel &= np.abs(np.abs(q[:, 1]) - forks.centre_y) < 0.5 * forks.width + 0.005
+        # Depth-edge pixels only along the inner sides (mixed pixels along the outer sides fly beyond the tips).
+        sel &= ~mixed | (np.abs(q[:, 1]) < forks.centre_y - 0.5 * forks.width + 0.006)
+        # Above the floor by more than the depth noise (4 sigma of its vertical part), and not above the blade.
+        d_up = np.abs((rays @ T.R.T)[:, 2]) / np.linalg.norm(rays, axis=1)
+        height = q[:, 2] + fd.frame.fork_height
+        sel &= (height > 1.35 * _depth_tolerance(z) * d_up + 0.002) & (q[:, 2] < forks.thickness + 0.01)
+        reach_all.append(ahead[sel])
+    ahead_all = np.concatenate(reach_all) if reach_all else np.zeros(0)
+    n = len(ahead_all)
+    out: dict = {"beyond_tip_points": n, "tip_trusted": True}
+    if n < limits.min_beyond_points:
+        return out
+    reach = float(np.percentile(ahead_all, 90))
+    out.update({"tip_trusted": False, "beyond_tip_reach_m": reach})
+    warnings.append(
+        f"fork tips cannot be trusted: {n} pixels of the forks stand above the floor up to about "
+        f"{reach * 1e3:.0f} mm beyond where the fit put the tips. The blades' top face ends before their tips, "
+        "as on a tapered blade whose profile the forks file does not give, so the camera's forward position x "
+        "may be off by as much. Measure the blade profile near the tips (taper_length, tip_thickness, "
+        "taper_side; `palletpilot forks measure FRAME.npz ... --forks FORKS.yaml --out NEW_FORKS.yaml` with "
+        "frames at a few fork heights) and calibrate with that file"
+    )
+    return out
 
 
 # -- method `paper` ---------------------------------------------------------------------------------
-
-
-def _vanishing_point(fd: _FrameData) -> np.ndarray:
-    """Least-squares intersection (pixels) of the lines fitted to the left and right edges of both forks."""
-    mask: np.ndarray = np.zeros(fd.frame.depth.shape, np.uint8)
-    mask[fd.fork_pixels[:, 0], fd.fork_pixels[:, 1]] = 1
-    _, comp, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    order = np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2] + 1
-    lines = []
-    h, w = mask.shape
-    for c in order:
-        rows, cols = np.nonzero(comp == c)
-        left, right = np.full(h, w), np.full(h, -1)
-        np.minimum.at(left, rows, cols)
-        np.maximum.at(right, rows, cols)
-        for edge in (left, right):
-            r = np.flatnonzero((edge >= 0) & (edge < w))
-            pts = np.column_stack([edge[r], r]).astype(np.float32)
-            if len(pts) >= 10:
-                vx, vy, x0, y0 = cv2.fitLine(pts, cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
-                lines.append((np.array([vx, vy]), np.array([x0, y0])))
-    if len(lines) < 2:
-        raise CalibrationError("paper method: fork edges not found for the vanishing point")
-    # Each line: normal . p = normal . p0; solve in least squares.
-    A = np.array([[-d[1], d[0]] for d, _ in lines])
-    b = np.array([(-d[1]) * p[0] + d[0] * p[1] for d, p in lines])
-    vp, *_ = np.linalg.lstsq(A, b, rcond=None)
-    return vp
-
-
-def _ransac_plane(points: np.ndarray, threshold: float) -> tuple[np.ndarray, float]:
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    o3d.utility.random.seed(_RNG_SEED)
-    (a, b, c, d), _ = pcd.segment_plane(threshold, 3, 200)
-    n = np.array([a, b, c])
-    return n / np.linalg.norm(n), d / np.linalg.norm(n)
-
-
-def _paper_fit(fd: _FrameData, forks: ForkGeometry, limits: Limits, where: str) -> tuple[SE3, dict]:
-    n, d, _ = _fit_floor(fd.floor, limits, where)  # n: floor normal (up) in camera coordinates
-    # Tilt: angle between the camera's -y axis and the floor normal (eq. in 3.2.1).
-    tilt = math.acos(float(np.clip(n @ np.array([0.0, -1.0, 0.0]), -1.0, 1.0)))
-    vp = _vanishing_point(fd)
-    K = fd.frame.K
-    pan = math.atan((vp[0] - K[0, 2]) / K[0, 0])  # eq. 5
-    # R_C'C = X_tilt Y_pan Z_0 in the level camera frame C' (optical axes, levelled), signs as in
-    # `camera_mount_pose`: tilting down is -tilt about x, panning left is -pan about y.
-    R_levelcam_cam = Rotation.from_euler("x", -tilt) * Rotation.from_euler("y", -pan)
-    pts = R_levelcam_cam.apply(fd.forks)  # fork points in C': x right, y down, z forward, level
-    height = d
-    above = pts[(height - fd.frame.fork_height - pts[:, 1] > 0.25 * forks.thickness)]
-    if len(above) < limits.min_fork_points // 2:
-        raise CalibrationError(f"{where}: paper method: too few fork points above the floor")
-    # P2, P3: the inner sides of the left and right fork, vertical faces (normal along C' x) that
-    # face the middle. Normals from the local neighbourhood, then a RANSAC plane per fork.
-    rng = np.random.default_rng(_RNG_SEED)
-    sample = above if len(above) <= 30000 else above[rng.choice(len(above), 30000, replace=False)]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
-    normals = np.asarray(pcd.normals)
-    vertical = np.abs(normals[:, 0]) > 0.9
-    middle = np.median(sample[:, 0])
-    p2 = sample[vertical & (sample[:, 0] < middle)]
-    p3 = sample[vertical & (sample[:, 0] >= middle)]
-    if len(p2) < 30 or len(p3) < 30:
-        raise CalibrationError(f"{where}: paper method: inner fork sides not found ({len(p2)}, {len(p3)} points)")
-    n2, d2 = _ransac_plane(p2, 0.004)
-    n3, d3 = _ransac_plane(p3, 0.004)
-    x_p2 = -d2 / n2[0]  # where each plane crosses the C' x axis
-    x_p3 = -d3 / n3[0]
-    x_F = 0.5 * (x_p2 + x_p3)  # eq. 8-9: the origin lies midway between the inner sides
-    y_F = height - fd.frame.fork_height  # eq. 10: distance to the floor plane, at lift height 0
-    tip = np.percentile(pts[:, 2], 99.8)  # P5 through the farthest fork points (the tips), eq. 11-12
-    z_F = tip - forks.tip_x
-    t_levelcam_F = np.array([x_F, y_F, z_F])  # origin of F in C'
-    T_F_levelcam = SE3(Rotation.from_matrix(R_LEVEL), -R_LEVEL @ t_levelcam_F)  # eq. 13
-    T = T_F_levelcam @ SE3(R_levelcam_cam)
-    quality = {"vanishing_point_px": np.round(vp, 2).tolist(), "inner_side_points": [len(p2), len(p3)]}
-    return T, quality
 
 
 # -- public API ------------------------------------------------------------------------------------
@@ -503,16 +532,18 @@ def calibrate(
     t0 = time.perf_counter()
     data = [_frame_data(f, n, limits) for f, n in zip(frames, names, strict=True)]
     where = names[0] if len(names) == 1 else f"{len(names)} frames"
+    warnings: list[str] = []
     if method == "paper":
-        T, quality = _paper_fit(data[0], forks, limits, names[0])
+        n, d, _ = _fit_floor(data[0].floor, limits, names[0])  # floor normal (up) in camera coordinates
+        T, quality = paper_fit(data[0], (n, d), forks, limits, names[0])
         used = 1
     else:
-        T, quality = _model_fit(data, forks, limits, where)
+        T, quality, warnings = _model_fit(data, forks, limits, where)
         used = len(data)
     quality = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in quality.items()}
     quality["frames_used"] = used
     quality["runtime_ms"] = round((time.perf_counter() - t0) * 1e3, 1)
-    return Calibration(T, method, quality)
+    return Calibration(T, method, quality, tuple(warnings))
 
 
 class Calibrator:

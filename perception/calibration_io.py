@@ -3,7 +3,7 @@
 ```json
 {"T_forklift_camera": [[...4 x 4...]], "xyz_m": [x, y, z], "rpy_deg": [roll, pitch, yaw],
  "tilt_deg": 22.0, "pan_deg": 0.5, "roll_about_optical_deg": -0.3,
- "method": "model", "quality": {...}}
+ "method": "model", "quality": {...}, "warnings": ["fork tips: ..."]}
 ```
 `T_forklift_camera` is always for lift height 0; at lift height h the camera is at
 `Trans(0, 0, h) @ T_forklift_camera`. `xyz_m` and `rpy_deg` restate it (roll, pitch, yaw of the
@@ -59,6 +59,7 @@ class Calibration:
     T_forklift_camera: SE3
     method: str
     quality: dict[str, Any] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()  # what the operator should know (an untrusted tip, ...): stderr of `calibrate`
 
     def T_forklift_camera_at(self, lift_height: float) -> SE3:
         """The camera pose at a lift height (m): the camera rides on the carriage."""
@@ -77,6 +78,7 @@ class Calibration:
             "roll_about_optical_deg": round(math.degrees(roll), 4),
             "method": self.method,
             "quality": self.quality,
+            "warnings": list(self.warnings),
         }
 
 
@@ -115,6 +117,9 @@ class CalibrationFile(FileModel):
     roll_about_optical_deg: _Number | None = Field(None, ge=-180.0, le=180.0, description="mount roll (deg)")
     method: str = Field("unknown", min_length=1, max_length=64, description="the method that found it")
     quality: dict[str, Any] = Field(default_factory=dict, description="quality figures (informative)")
+    warnings: list[Annotated[str, Field(max_length=2000)]] = Field(
+        default_factory=list, max_length=50, description="the calibration's warnings (informative)"
+    )
     pickup_view: dict[str, Any] | None = Field(None, description="the mount check of `calibrate` (informative)")
 
     @field_validator("T_forklift_camera")
@@ -193,4 +198,4 @@ def load_calibration(path: str | Path) -> Calibration:
         T = SE3.from_matrix(np.array(model.T_forklift_camera, dtype=float), atol=ROTATION_TOLERANCE)
     except GeometryError as exc:  # the model has checked it; kept as a last guard
         raise PerceptionError(f"{path}: T_forklift_camera: {exc}") from None
-    return Calibration(T, model.method, dict(model.quality))
+    return Calibration(T, model.method, dict(model.quality), tuple(model.warnings))

@@ -7,3 +7,7 @@ from palletpilot.geometry import PalletpilotError
 
 class PerceptionError(PalletpilotError):
     """Bad perception input: a frame bundle or geometry file that cannot be used as it is."""
+
+
+class CalibrationError(PerceptionError):
+    """The frames do not allow a calibration; the message says which feature is missing or how far off."""

@@ -96,6 +96,9 @@ class PalletPhysics:
         boxes = [
             (name, lo, hi) for name, (lo, hi) in zip(("left fork", "right fork"), self.forks.boxes(h), strict=True)
         ]
+        # The heel fillets (a heel radius in the forks file) stand on the blades next to the carriage.
+        heels = zip(("left fork heel", "right fork heel"), self.forks.heel_boxes(h), strict=False)
+        boxes += [(name, lo, hi) for name, (lo, hi) in heels]
         lo, hi = (np.array(v) for v in _BACKREST)
         boxes.append(("load backrest", lo + np.array([0.0, 0.0, h]), hi + np.array([0.0, 0.0, h])))
         return boxes

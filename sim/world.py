@@ -383,12 +383,66 @@ def object_box_mesh(
     return box.transformed(T_world_box)
 
 
+def _prism_mesh(polygon_xz: np.ndarray, y0: float, y1: float) -> o3d.geometry.TriangleMesh:
+    """A prism along y over [y0, y1] whose cross-section is the convex polygon `polygon_xz` ((K, 2): x, z).
+
+    Triangles face outwards (checked against the centroid, which a convex prism contains).
+    """
+    k = len(polygon_xz)
+    xz = np.asarray(polygon_xz, dtype=float)
+    vertices = np.vstack(
+        [np.column_stack([xz[:, 0], np.full(k, y), xz[:, 1]]) for y in (y0, y1)]
+    )  # 0..k-1 at y0, k..2k-1 at y1
+    tris = [(0, i, i + 1) for i in range(1, k - 1)] + [(k, k + i + 1, k + i) for i in range(1, k - 1)]
+    for i in range(k):
+        j = (i + 1) % k
+        tris += [(i, j, k + j), (i, k + j, k + i)]
+    tri = np.array(tris, dtype=np.int32)
+    centre = vertices.mean(axis=0)
+    a, b, c = vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]]
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3.0 - centre) < 0.0
+    tri[inward] = tri[inward][:, ::-1]
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(tri))
+
+
+def fork_blade_sections(forks: ForkGeometry, lift_height: float = 0.0, fillet_steps: int = 6) -> list[np.ndarray]:
+    """The blade's side profile (x, z; forklift frame) as convex polygons: the full-thickness box, the
+    tapered wedge at the tip (when the file gives a taper) and slices of the heel fillet (a heel radius)."""
+    h = lift_height
+    x_heel, x_taper, x_tip = forks.heel_x, forks.taper_start_x, forks.tip_x
+    t = forks.thickness
+    sections = []
+    if forks.tapered:
+        sections.append(np.array([[x_heel, h], [x_taper, h], [x_taper, h + t], [x_heel, h + t]]))
+        top_tip, bottom_tip = float(forks.top_z(x_tip)), float(forks.bottom_z(x_tip))
+        sections.append(np.array([[x_taper, h], [x_tip, h + bottom_tip], [x_tip, h + top_tip], [x_taper, h + t]]))
+    else:
+        sections.append(np.array([[x_heel, h], [x_tip, h], [x_tip, h + t], [x_heel, h + t]]))
+    r = forks.heel_radius
+    if r > 0.0:
+        xs = x_heel + np.linspace(0.0, r, fillet_steps + 1)
+        zs = forks.top_z(xs)
+        for i in range(fillet_steps):
+            sections.append(
+                np.array([[xs[i], h + t], [xs[i + 1], h + t], [xs[i + 1], h + zs[i + 1]], [xs[i], h + zs[i]]])
+            )
+    return sections
+
+
 def forks_mesh(forks: ForkGeometry, lift_height: float, T_world_forklift: SE3 | SE2) -> LabeledMesh:
-    """The ego forklift's two fork blades (class forks) at lift height (m), placed with `T_world_forklift`."""
-    parts = [
-        box_mesh(lo, hi, SemanticClass.FORKS, FORK_STEEL, Texture.PAINTED_METAL, grain=(1, 0, 0))
-        for lo, hi in forks.boxes(lift_height)
-    ]
+    """The ego forklift's two fork blades (class forks) at lift height (m), placed with `T_world_forklift`.
+
+    A box blade as before; with a blade profile in the forks file, the full-thickness part, the
+    tapered tip (a wedge whose top or bottom slopes) and the heel fillet (`fork_blade_sections`).
+    """
+    parts = []
+    for cy in forks.centres_y:
+        y0, y1 = cy - 0.5 * forks.width, cy + 0.5 * forks.width
+        for section in fork_blade_sections(forks, lift_height):
+            prism = _prism_mesh(section, y0, y1)
+            parts.append(
+                LabeledMesh.from_open3d(prism, SemanticClass.FORKS, FORK_STEEL, Texture.PAINTED_METAL, grain=(1, 0, 0))
+            )
     return LabeledMesh.merge(parts).transformed(T_world_forklift)
 
 
