@@ -71,7 +71,7 @@ from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.instances import select_instance
-from palletpilot.perception.pallet_deck import _deck_yaw
+from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
     DEFAULT_CONFIG,
     PALLET_CLASSES,
@@ -100,6 +100,7 @@ from palletpilot.perception.pallet_face import (
 from palletpilot.perception.pallet_model import (
     _best,
     _check_pockets,
+    _check_sides,
     _cost,
     _initial_underside,
     _layer_delta,
@@ -157,6 +158,7 @@ def estimate_pallet(
     valid, labelled, rows, cols, found = _pallet_pixels(frame, frame.labels, T_cf, cfg, expected)
     rays = _rays(depth, frame.K, R, rows, cols, np.ones(len(rows), bool))
     rng = np.random.default_rng(cfg.seed)
+    on_deck = class_mask(frame.labels, _ON_DECK_CLASSES)  # a load, film, or what else stands on a pallet
 
     # 2. The entry face among the labelled pixels.
     plane, s0, z0, sigma, half_range = _entry_face(rays, model, pallet, cam, cfg, rng)
@@ -170,7 +172,8 @@ def estimate_pallet(
         footprint = plane.D / float(frame.K[0, 0])  # lateral size (m) of a pixel on the face, roughly
         s0 = _lateral_centre(model, fc, s0, z0, sigma, half_range, footprint, round_, cfg)
         z0 = _underside(model, fc, steady, s0, z0, sigma, footprint, round_, cfg)
-        plane, s0, sigma, use = _refit_face(model, fc, all_rays, plane, cam, s0, z0, sigma, footprint, cfg)
+        cargo = on_deck[all_rays.rows, all_rays.cols]
+        plane, s0, sigma, use = _refit_face(model, fc, all_rays, plane, cam, s0, z0, sigma, footprint, cfg, cargo)
         n_face = int(use.sum())
         # Optionally side walls seen at a slant: one fit of face and walls together.
         n_wall = 0
@@ -192,7 +195,8 @@ def estimate_pallet(
     footprint = plane.D / float(frame.K[0, 0])
     hr = fc.h - z0
     band = (hr >= 0.3 * model.block_top) & (hr <= 0.9 * model.block_top) & steady
-    edges = _pocket_edges(model, fc, s0, band, sigma, cfg)
+    _check_sides(model, cfg, fc, all_rays.labelled, s0, z0, band, sigma, footprint)
+    edges = _pocket_edges(model, fc, s0, band, sigma, footprint, cfg)
     right_w, left_w = edges[1] - edges[0], edges[3] - edges[2]
     right_c, left_c = 0.5 * (edges[0] + edges[1]), 0.5 * (edges[2] + edges[3])
     _check_pockets(model, cfg, fc, s0, z0, band, sigma, (left_w, right_w), (left_c, right_c))
@@ -427,8 +431,10 @@ def _refit_face(
     sigma: float,
     footprint: float,
     cfg: PalletEstimatorConfig,
+    cargo: np.ndarray | None = None,
 ) -> tuple[_Plane, float, float, np.ndarray]:
-    """Step 3: the plane refitted on the pixels the model puts on the solid face.
+    """Step 3: the plane refitted on the pixels the model puts on the solid face (bottom boards that
+    are missing, `_missing_bottom_boards`, left out).
 
     Returns the plane, the lateral centre re-expressed on it, the inverse-depth noise and the mask of
     the pixels fitted.
@@ -437,6 +443,9 @@ def _refit_face(
     margin = cfg.face_margin_px * footprint + cfg.face_margin_m
     on_face = model.solid(fc.s - s0, fc.h - z0, margin, margin)
     res = fc.w - fc.nd / fc.D
+    on_face &= ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
+    if cargo is not None:  # a load or stretch film in front of the face (an overhang) is not the face
+        on_face &= ~cargo
     # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
     # the forklift origin, so a new plane (another yaw) needs it re-expressed, or the pallet model
     # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
@@ -453,8 +462,53 @@ def _refit_face(
     return plane, s0, sigma, use
 
 
+def _recessed(
+    model: _Model,
+    fc: _FaceCoords,
+    res: np.ndarray,
+    s0: float,
+    z0: float,
+    margin: float,
+    sigma: float,
+    cfg: PalletEstimatorConfig,
+) -> np.ndarray:
+    """Pixels of the modelled face that are not there (a damaged pallet): their rays end well behind it.
+
+    Cells of the face are tested one by one: each bottom board, and each block face in quarters
+    (left and right half, lower and upper half). A cell is gone (a missing bottom board, a chipped
+    block's corner or edge) where the median of its pixels' inverse-depth residuals lies clearly (3
+    standard errors) and at least `cfg.missing_board_depth_m` behind the face; its pixels are then
+    no evidence of the face.
+    """
+    out = np.zeros(len(fc.s), bool)
+    s_rel, h_rel = fc.s - s0, fc.h - z0
+    cells = [(lo, hi, 0.0, model.bottom_top) for lo, hi in model.bottom_segments()]
+    z_mid = 0.5 * (max(model.bottom_top, model.pocket_floor) + model.block_top)
+    for lo, hi in model.columns:
+        y_mid = 0.5 * (lo + hi)
+        for y0, y1 in ((lo, y_mid), (y_mid, hi)):
+            cells += [(y0, y1, max(model.bottom_top, model.pocket_floor), z_mid), (y0, y1, z_mid, model.block_top)]
+    depth = cfg.missing_board_depth_m
+    behind = depth / (fc.D * (fc.D + depth))  # in inverse depth
+    for y0, y1, z0_, z1_ in cells:
+        m = (s_rel >= y0 + margin) & (s_rel <= y1 - margin) & (h_rel >= z0_ + margin) & (h_rel <= z1_ - margin)
+        n = int(m.sum())
+        if n < 5:
+            continue
+        med = float(np.median(res[m]))
+        if med < -behind and med < -3.0 * 1.25 * sigma / np.sqrt(n):
+            out |= m
+    return out
+
+
 def _pocket_edges(
-    model: _Model, fc: _FaceCoords, s0: float, band: np.ndarray, sigma: float, cfg: PalletEstimatorConfig
+    model: _Model,
+    fc: _FaceCoords,
+    s0: float,
+    band: np.ndarray,
+    sigma: float,
+    footprint: float,
+    cfg: PalletEstimatorConfig,
 ) -> list[float]:
     """Step 4: the four inner block-column edges (pallet y, m), each searched on its own.
 
@@ -476,5 +530,13 @@ def _pocket_edges(
             cols_h[:, col, side] += egrid
             delta = _wall_delta(s_rel, fc.t[idx][:, None], cols_h, model.block_length)
             e, _ = _best(egrid, _cost(fc, idx, delta, model.block_length, sigma, trunc))
+        # Build tolerance moves an edge by millimetres; further off, the face is another pallet type.
+        limit = cfg.max_edge_offset_m + footprint  # a pixel more for the quantisation at a distance
+        if abs(e) > limit:
+            raise PalletNotFound(
+                "pockets_inconsistent",
+                f"the block edge at y = {y_edge:+.3f} m of the {model.name} type is {1e3 * e:+.0f} mm off "
+                f"(more than {1e3 * limit:.0f} mm)",
+            )
         edges.append(y_edge + e)
     return edges

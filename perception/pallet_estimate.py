@@ -31,7 +31,10 @@ PALLET_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL
 """Label ids of pallet pixels."""
 
 
-NotFoundReason = Literal["too_few_points", "no_entry_face", "pockets_inconsistent", "not_where_expected"]
+NotFoundReason = Literal[
+    "too_few_points", "no_entry_face", "pockets_inconsistent", "not_where_expected", "type_mismatch"
+]
+"""Why no pallet was found; `type_mismatch`: a pallet face wider than the pallet type's (another type)."""
 
 
 class PalletNotFound(PerceptionError):  # noqa: N818 (the name the architecture gives it)
@@ -67,12 +70,21 @@ class PalletEstimatorConfig:
     lateral_search_m: float = 0.06
     vertical_search_m: float = 0.03
     edge_search_m: float = 0.02
-    pocket_width_tolerance_m: float = 0.025
+    pocket_width_tolerance_m: float = 0.02
     pocket_centre_tolerance_m: float = 0.025
     min_pocket_open: float = 0.4
     """Share of pocket-interior pixels that must see past the face."""
     min_column_solid: float = 0.6
     """Share of block-column pixels that must lie on the face."""
+    max_side_solid: float = 0.5
+    """Largest share of pallet pixels just past a side of the modelled face (block layer) that may lie on
+    the face plane: more, and the face is wider than the pallet type's (`type_mismatch`)."""
+    missing_board_depth_m: float = 0.015
+    """A cell of the face (a bottom board, a quarter of a block face) whose pixels lie (median) this far
+    behind the face is missing or chipped: left out of the face fit."""
+    max_edge_offset_m: float = 0.012
+    """A pocket edge this far (m) plus a pixel footprint off where the pallet type has it (build
+    tolerance moves edges by millimetres) means another pallet type (`pockets_inconsistent`)."""
     truncation_sigma: float = 3.0
     rounds: int = 2
     face_margin_px: float = 0.5

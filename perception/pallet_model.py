@@ -41,11 +41,15 @@ class _Model:
     top_boards: np.ndarray  # (B, 2) deck boards (y_lo, y_hi)
     pocket_width: float
     pocket_centres: np.ndarray  # (2,) (left, right)
+    name: str = "EUR/EPAL"
+    pocket_floor: float = 0.0  # top of a perimeter bottom board across the pockets (0: open to the floor)
+    bottom_top: float = 0.0  # top of the bottom boards (0: legs)
+    runners: bool = True  # bottom boards under the block columns (else across the rows, or none)
 
     @classmethod
     def of(cls, p: PalletType) -> _Model:
         cols = np.array(p.column_bounds_y(), dtype=float)
-        boards = np.array(sorted((part.lo[1], part.hi[1]) for part in p.parts() if part.kind == "top_board"))
+        boards = np.array(sorted(p.face_deck_bounds_y))
         return cls(
             width=p.width,
             length=p.length,
@@ -58,7 +62,19 @@ class _Model:
             top_boards=boards,
             pocket_width=p.pocket_width,
             pocket_centres=np.array(p.pocket_centres_y),
+            name=p.name,
+            pocket_floor=p.pocket_floor,
+            bottom_top=p.bottom_board_thickness,
+            runners=p.bottom_boards == "runners",
         )
+
+    def bottom_segments(self) -> list[tuple[float, float]]:
+        """(y_lo, y_hi) (m) of the bottom boards on the entry face: under each column, or the whole width."""
+        if self.bottom_top <= 0.0:
+            return []
+        if self.runners:
+            return [(float(lo), float(hi)) for lo, hi in self.columns]
+        return [(-0.5 * self.width, 0.5 * self.width)]
 
     def solid(self, s: np.ndarray, h: np.ndarray, margin_s: np.ndarray | float, margin_h: float) -> np.ndarray:
         """Points (s, h) of the entry face at least the margins inside its solid parts."""
@@ -74,6 +90,8 @@ class _Model:
             )
         for lo, hi in self.columns:
             out |= (s >= lo + margin_s) & (s <= hi - margin_s) & (h >= margin_h) & (h <= self.height - margin_h)
+        if self.pocket_floor > 0.0:  # a perimeter bottom board across the entry
+            out |= (np.abs(s) <= 0.5 * self.width - margin_s) & (h >= margin_h) & (h <= self.pocket_floor - margin_h)
         return out
 
 
@@ -129,6 +147,11 @@ def _layer_delta(
     block = h_rel < model.block_top
     if block.any():
         delta = np.where(block, _wall_delta(s_rel, t, cols, model.block_length), delta)
+    if model.pocket_floor > 0.0:  # a perimeter bottom board across the entry, full width
+        low = h_rel < model.pocket_floor
+        if low.any():
+            full = np.array([[-0.5 * model.width, 0.5 * model.width]])
+            delta = np.where(low, _wall_delta(s_rel, t, full, model.block_length), delta)
     cross = (h_rel >= model.block_top) & (h_rel < model.cross_top)
     if cross.any():
         d = _wall_delta(s_rel, t, np.array([[-0.5 * model.width, 0.5 * model.width]]), model.block_length)
@@ -219,6 +242,8 @@ def _initial_underside(model: _Model, h: np.ndarray) -> float:
     for z0 in np.arange(lo, hi - model.height + 1e-9, 0.002):
         hr = centres - z0
         width = np.where((hr >= 0) & (hr < model.block_top), np.sum(np.diff(model.columns, axis=1)), 0.0)
+        if model.pocket_floor > 0.0:
+            width = np.where((hr >= 0) & (hr < model.pocket_floor), model.width, width)
         width = np.where((hr >= model.block_top) & (hr < model.cross_top), model.width, width)
         top = float(np.sum(np.diff(model.top_boards, axis=1)))
         width = np.where((hr >= model.cross_top) & (hr <= model.height), top, width)
@@ -264,19 +289,53 @@ def _check_pockets(
         if m.sum() >= 5 and float(on_face[m].mean()) < cfg.min_column_solid:
             raise PalletNotFound(
                 "pockets_inconsistent",
-                f"the block column at y = {0.5 * (lo + hi):+.3f} m is missing: "
+                f"the block column at y = {0.5 * (lo + hi):+.3f} m of the {model.name} type is missing: "
                 f"{100 * float(on_face[m].mean()):.0f} % on the face",
             )
     for name, w in (("left", widths[0]), ("right", widths[1])):
         if abs(w - model.pocket_width) > cfg.pocket_width_tolerance_m:
             raise PalletNotFound(
                 "pockets_inconsistent",
-                f"the {name} pocket is {1e3 * w:.0f} mm wide, the pallet type's are {1e3 * model.pocket_width:.1f} mm",
+                f"the {name} pocket is {1e3 * w:.0f} mm wide, the {model.name} type's are "
+                f"{1e3 * model.pocket_width:.1f} mm",
             )
     spacing = centres[0] - centres[1]
     expected = model.pocket_centres[0] - model.pocket_centres[1]
     if abs(spacing - expected) > cfg.pocket_centre_tolerance_m:
         raise PalletNotFound(
             "pockets_inconsistent",
-            f"the pocket centres are {1e3 * spacing:.0f} mm apart, the pallet type's {1e3 * expected:.1f} mm",
+            f"the pocket centres are {1e3 * spacing:.0f} mm apart, the {model.name} type's {1e3 * expected:.1f} mm",
         )
+
+
+def _check_sides(
+    model: _Model,
+    cfg: PalletEstimatorConfig,
+    fc: _FaceCoords,
+    labelled: np.ndarray,
+    s0: float,
+    z0: float,
+    band: np.ndarray,
+    sigma: float,
+    footprint: float,
+) -> None:
+    """Raise `PalletNotFound("type_mismatch")` where the pallet's face continues past a side of the type's face.
+
+    Pallet-labelled pixels of the block layer just past each side (beyond label noise), whose rays the
+    model sends past the pallet (not onto its side walls), must mostly see past the face plane.
+    """
+    s_rel = fc.s - s0
+    res = fc.w - fc.nd / fc.D
+    on_face = np.abs(res) < cfg.truncation_sigma * sigma
+    past = ~np.isfinite(_wall_delta(s_rel, fc.t, model.columns, model.block_length))
+    margin = max(0.015, 3.0 * footprint)
+    for name, sign in (("left", 1.0), ("right", -1.0)):
+        out = sign * s_rel - 0.5 * model.width
+        m = band & labelled & past & (out >= margin) & (out <= margin + 0.06)
+        if m.sum() >= 10 and float(on_face[m].mean()) > cfg.max_side_solid:
+            raise PalletNotFound(
+                "type_mismatch",
+                f"the entry face continues past the {name} side of the {model.name} type's face "
+                f"({1e3 * model.width:.0f} mm wide): {100 * float(on_face[m].mean()):.0f} % of the pallet pixels "
+                "beyond it lie on the face",
+            )

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from palletpilot.geometry import SE2, SE3
@@ -266,6 +266,13 @@ def load_forks(path: str | Path) -> ForkGeometry:
 
 
 PartKind = Literal["top_board", "cross_board", "block", "bottom_board"]
+DeckKind = Literal["boards", "across", "closed"]
+"""The top deck: `boards` along x spread over the width (EUR), `across` boards along y spread over the
+length (a pallet entered on the side its deck boards run along), `closed` one solid deck (plastic)."""
+BottomKind = Literal["runners", "perimeter", "none"]
+"""Under the blocks: `runners` along x under each block column (pockets open to the floor, EUR),
+`perimeter` along y under each block row (a board across the entry closes the pockets' bottom),
+`none` (legs standing on the floor; `bottom_board_thickness` must then be 0)."""
 
 
 @dataclass(frozen=True)
@@ -286,10 +293,14 @@ class PalletPart:
 class PalletType(FileModel):
     """A block pallet entered on its `width` side, built of boards and blocks (metres, pallet frame).
 
-    From the floor up: bottom boards (along x, under the block columns), blocks (3 rows along x by
-    the block columns along y), cross boards (along y, on top of each block row) and top deck boards
-    (along x). The pockets lie between the block columns, from the floor (open: no bottom board
-    crosses the entry side) up to the underside of the cross boards.
+    The file describes the pallet as the forks see it: `width` is the entry face, `length` runs along
+    the pockets (a 1200 x 1000 pallet entered on its 1200 side has width 1.2, length 1.0).
+    From the floor up: bottom boards (`bottom_boards`: along x under the block columns, along y under
+    the block rows, or none: legs), blocks (3 rows along x by the block columns along y), cross boards
+    (along y, on top of each block row) and the top deck (`deck`: boards along x, boards along y, or
+    closed). The pockets lie between the block columns, from the floor (or the top of a perimeter
+    bottom board) up to the underside of the cross boards. `material` only changes how the simulator
+    renders it. Every field is optional; the defaults are the EUR/EPAL pallet.
     """
 
     model_config = ConfigDict(frozen=True, validate_default=True)  # the defaults meet the checks too
@@ -299,12 +310,14 @@ class PalletType(FileModel):
     name: str = Field("EUR/EPAL", min_length=1, max_length=64)
     length: _Number = Field(1.2, description="along x, the fork direction (m)")
     width: _Number = Field(0.8, description="along y, the entry face (m)")
+    material: Literal["wood", "plastic"] = Field("wood", description="how the simulator renders it")
+    deck: DeckKind = Field("boards", description="top deck: boards along x, boards along y (across) or closed")
     top_board_thickness: _Number = 0.022
     top_board_widths: tuple[_Number, ...] = Field(
         (0.145, 0.100, 0.145, 0.100, 0.145),
         min_length=1,
         max_length=20,
-        description="deck boards along x, spread evenly over the width",
+        description="deck boards, spread evenly over the width (deck: boards) or the length (deck: across)",
     )
     cross_board_thickness: _Number = Field(0.022, description="boards along y on the blocks")
     block_height: _Number = 0.078
@@ -312,22 +325,40 @@ class PalletType(FileModel):
     block_columns: tuple[_Number, _Number, _Number] = Field(
         (0.100, 0.145, 0.100), description="block widths along y, right to left; pockets between them"
     )
-    bottom_board_thickness: _Number = Field(0.022, description="boards along x under each block column")
+    bottom_boards: BottomKind = Field("runners", description="runners (along x), perimeter (along y) or none (legs)")
+    bottom_board_thickness: _Number = Field(
+        0.022, description="bottom boards (runners: under each block column; perimeter: under each block row)"
+    )
     height: _Number = Field(0.144, description="total height (m); must equal the sum of the layers")
 
-    @field_validator(*PALLET_RANGES_M)
+    @field_validator(*(k for k in PALLET_RANGES_M if k != "bottom_board_thickness"))
     @classmethod
     def _plausible(cls, value: float | tuple[float, ...], info: ValidationInfo) -> float | tuple[float, ...]:
+        _check_ranges(value, info, PALLET_RANGES_M)
+        return value
+
+    @field_validator("bottom_board_thickness")
+    @classmethod
+    def _bottom_fits(cls, value: float, info: ValidationInfo) -> float:
+        if info.data.get("bottom_boards") == "none":
+            if value != 0.0:
+                raise PydanticCustomError(
+                    "dimensions", f"{value:g} m, but bottom_boards is none (legs on the floor): give 0"
+                )
+            return value
         _check_ranges(value, info, PALLET_RANGES_M)
         return value
 
     @field_validator("top_board_widths")
     @classmethod
     def _deck_fits(cls, widths: tuple[float, ...], info: ValidationInfo) -> tuple[float, ...]:
-        width = info.data.get("width")
-        if width is not None and sum(widths) > width + _MM:
+        across = info.data.get("deck") == "across"
+        span = info.data.get("length" if across else "width")
+        if span is not None and sum(widths) > span + _MM:
             raise PydanticCustomError(
-                "dimensions", f"the deck boards are {sum(widths):g} m wide in all, wider than the pallet ({width:g} m)"
+                "dimensions",
+                f"the deck boards are {sum(widths):g} m wide in all, more than the pallet's "
+                f"{'length' if across else 'width'} ({span:g} m)",
             )
         return widths
 
@@ -366,6 +397,12 @@ class PalletType(FileModel):
                 )
         return height
 
+    @model_validator(mode="after")
+    def _closed_deck_has_no_boards(self) -> PalletType:
+        if self.deck == "closed" and "top_board_widths" in self.model_fields_set:
+            raise ValueError("top_board_widths: a closed deck (deck: closed) has no boards; leave it out")
+        return self
+
     @classmethod
     def eur(cls) -> PalletType:
         """The EUR/EPAL 1 pallet: 1200 x 800 x 144 mm, entered on the 800 mm side.
@@ -386,6 +423,18 @@ class PalletType(FileModel):
     def pocket_height(self) -> float:
         """Height (m) of the pockets: floor to the underside of the cross boards."""
         return self.bottom_board_thickness + self.block_height
+
+    @property
+    def pocket_floor(self) -> float:
+        """Height (m) where the pocket's opening starts: the perimeter board's top, else the floor (0)."""
+        return self.bottom_board_thickness if self.bottom_boards == "perimeter" else 0.0
+
+    @property
+    def face_deck_bounds_y(self) -> list[tuple[float, float]]:
+        """(y_lo, y_hi) (m) of the top deck layer on the entry face: the boards, or the whole width."""
+        if self.deck != "boards":
+            return [(-0.5 * self.width, 0.5 * self.width)]
+        return [(float(p.lo[1]), float(p.hi[1])) for p in self.parts() if p.kind == "top_board"]
 
     @property
     def pocket_centres_y(self) -> tuple[float, float]:
@@ -411,12 +460,27 @@ class PalletType(FileModel):
         z_cross = z_block + self.block_height
         z_top = z_cross + self.cross_board_thickness
         columns = self.column_bounds_y()
-        for j, (y0, y1) in enumerate(columns):
-            parts.append(
-                PalletPart(
-                    f"bottom_board_{j}", "bottom_board", np.array([0.0, y0, 0.0]), np.array([self.length, y1, z_block])
+        w2 = 0.5 * self.width
+        if self.bottom_boards == "runners":
+            for j, (y0, y1) in enumerate(columns):
+                parts.append(
+                    PalletPart(
+                        f"bottom_board_{j}",
+                        "bottom_board",
+                        np.array([0.0, y0, 0.0]),
+                        np.array([self.length, y1, z_block]),
+                    )
                 )
-            )
+        elif self.bottom_boards == "perimeter":
+            for i, x0 in enumerate(self.block_rows_x):
+                parts.append(
+                    PalletPart(
+                        f"bottom_board_{i}",
+                        "bottom_board",
+                        np.array([x0, -w2, 0.0]),
+                        np.array([x0 + self.block_length, w2, z_block]),
+                    )
+                )
         for i, x0 in enumerate(self.block_rows_x):
             for j, (y0, y1) in enumerate(columns):
                 parts.append(
@@ -435,7 +499,18 @@ class PalletType(FileModel):
                     np.array([x0 + self.block_length, 0.5 * self.width, z_top]),
                 )
             )
+        if self.deck == "closed":
+            lo, hi = np.array([0.0, -w2, z_top]), np.array([self.length, w2, self.height])
+            return [*parts, PalletPart("top_deck", "top_board", lo, hi)]
         n = len(self.top_board_widths)
+        if self.deck == "across":  # boards along y, spread over the length from the entry face
+            gap = (self.length - sum(self.top_board_widths)) / (n - 1) if n > 1 else 0.0
+            x = 0.0
+            for k, bw in enumerate(self.top_board_widths):
+                lo, hi = np.array([x, -w2, z_top]), np.array([x + bw, w2, self.height])
+                parts.append(PalletPart(f"top_board_{k}", "top_board", lo, hi))
+                x += bw + gap
+            return parts
         gap = (self.width - sum(self.top_board_widths)) / (n - 1) if n > 1 else 0.0
         y = -0.5 * self.width if n > 1 else -0.5 * self.top_board_widths[0]
         for k, bw in enumerate(self.top_board_widths):
@@ -456,16 +531,73 @@ def load_pallet_type(path: str | Path) -> PalletType:
     return load_yaml_model(path, PalletType, PerceptionError)
 
 
-PALLET_NAMES = ("eur", "epal", "eur/epal")
-"""Names of the built-in pallet type (the EUR/EPAL pallet), any case."""
+BUILTIN_PALLETS: dict[str, dict[str, object]] = {
+    "eur": {},
+    "industrial": {
+        "name": "industrial 1200x1000 (1000 side)",
+        "length": 1.2,
+        "width": 1.0,
+        "top_board_widths": (0.145, 0.100, 0.100, 0.145, 0.100, 0.100, 0.145),
+        "block_columns": (0.145, 0.145, 0.145),
+    },
+    "industrial_long": {
+        "name": "industrial 1200x1000 (1200 side)",
+        "length": 1.0,
+        "width": 1.2,
+        "deck": "across",
+        "top_board_widths": (0.145, 0.100, 0.100, 0.100, 0.145),
+        "block_columns": (0.145, 0.145, 0.145),
+        "bottom_boards": "perimeter",
+    },
+    "half": {
+        "name": "half 800x600",
+        "length": 0.8,
+        "width": 0.6,
+        "top_board_widths": (0.100, 0.100, 0.100),
+        "block_length": 0.100,
+        "block_columns": (0.080, 0.100, 0.080),
+    },
+    "plastic": {
+        "name": "plastic 1200x800 (closed deck, 3 runners)",
+        "material": "plastic",
+        "deck": "closed",
+        "top_board_thickness": 0.02,
+        "cross_board_thickness": 0.02,
+        "block_height": 0.1,
+        "block_length": 0.16,
+        "block_columns": (0.12, 0.16, 0.12),
+        "bottom_board_thickness": 0.02,
+        "height": 0.16,
+    },
+}
+"""The built-in pallet types by name (fields that differ from EUR/EPAL). `missions/pallet_*.yaml` hold
+the same types as files: `industrial` is a 1200 x 1000 block pallet entered on its 1000 side,
+`industrial_long` the same pallet entered on its 1200 side (deck boards and bottom boards then run
+across the entry), `half` an 800 x 600 pallet entered on its 600 side, `plastic` a 1200 x 800
+plastic pallet with a closed deck on nine legs and three runners."""
+PALLET_ALIASES = {"epal": "eur", "eur/epal": "eur"}
+PALLET_NAMES = (*BUILTIN_PALLETS, *PALLET_ALIASES)
+"""Names of the built-in pallet types, any case."""
+
+
+def builtin_pallet(name: str) -> PalletType | None:
+    """The built-in pallet type `name` (any case, `PALLET_NAMES`), or None."""
+    key = PALLET_ALIASES.get(name.lower(), name.lower())
+    fields = BUILTIN_PALLETS.get(key)
+    return None if fields is None else PalletType.model_validate(fields)
 
 
 def pallet_type(name: str) -> PalletType:
-    """A pallet type by name (`PALLET_NAMES`: the EUR/EPAL pallet) or from a YAML file path."""
-    if name.lower() in PALLET_NAMES:
-        return PalletType.eur()
+    """A pallet type by name (`PALLET_NAMES`) or from a YAML file path."""
+    builtin = builtin_pallet(name)
+    if builtin is not None:
+        return builtin
     if not Path(name).exists() and not Path(name).suffix:
-        raise PerceptionError(f"{name}: not a known pallet type ({', '.join(PALLET_NAMES)}) nor a pallet type file")
+        eur = ", ".join(("eur", *PALLET_ALIASES))
+        others = ", ".join(k for k in BUILTIN_PALLETS if k != "eur")
+        raise PerceptionError(
+            f"{name}: not a known pallet type ({eur}) nor another built-in ({others}) nor a pallet type file"
+        )
     return load_pallet_type(name)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from palletpilot.geometry import SE3
 from palletpilot.perception.specs import ForkGeometry, PalletType
-from palletpilot.sim.world import Rack
+from palletpilot.sim.world import PalletCondition, Rack, pallet_parts
 
 _BACKREST = ((-0.12, -0.40, 0.0), (0.0, 0.40, 1.2))  # load backrest box (m), forklift frame above lift height
 
@@ -38,12 +38,19 @@ class SimPallet:
     lifted: bool = False  # the truck has lifted it at least once
     initial: SE3 | None = field(default=None, repr=False)  # where the scenario put it
     id: str = ""  # its node, or `pallets[i]` (its index in the scenario) for a free one
+    type: PalletType = field(default_factory=PalletType.eur, repr=False)
+    condition: PalletCondition | None = field(default=None, repr=False)  # build tolerance, damage, film
+    parts: list[Any] = field(default_factory=list, repr=False)  # its real boards and blocks (pallet frame)
 
     def __post_init__(self) -> None:
         if self.initial is None:
             self.initial = self.T_world_pallet
         if not self.id:
             self.id = self.node
+        if not self.parts:
+            self.parts = pallet_parts(self.type, self.condition)
+        self.part_lo = np.array([q.lo for q in self.parts])
+        self.part_hi = np.array([q.hi for q in self.parts])
 
 
 @dataclass(frozen=True)
@@ -71,9 +78,6 @@ class PalletPhysics:
     collisions: list[dict[str, Any]]
     time: float
     _racks: list[RackSupport]
-    _pallet_parts: list[Any]
-    _part_lo: np.ndarray
-    _part_hi: np.ndarray
 
     @property
     def fork_height(self) -> float:
@@ -152,7 +156,7 @@ class PalletPhysics:
     def _contact(self, p: SimPallet, T_wf: SE3, tol: float = 1e-3) -> str | None:
         """The first (box, part) pair that overlaps by more than `tol` (m), or None."""
         corners, z = self._fork_in_pallet(p, T_wf)
-        lo, hi = self._part_lo, self._part_hi
+        lo, hi = p.part_lo, p.part_hi
         names = [b[0] for b in self._fork_boxes()]
         for b in range(len(corners)):
             z_overlap = (np.minimum(z[b, 1], hi[:, 2]) - np.maximum(z[b, 0], lo[:, 2])) > tol
@@ -177,18 +181,19 @@ class PalletPhysics:
                     np.minimum(proj.max(), part_corners.max(axis=1)) - np.maximum(proj.min(), part_corners.min(axis=1))
                 ) > tol
             if overlap.any():
-                return f"{names[b]} hit {self._pallet_parts[int(np.argmax(overlap))].name}"
+                return f"{names[b]} hit {p.parts[int(np.argmax(overlap))].name}"
         return None
 
     def _try_lift(self, p: SimPallet, T_wf: SE3) -> bool:
         """Attach the pallet when both forks are deep in the pockets and touch the deck from below."""
         corners, z = self._fork_in_pallet(p, T_wf)
-        pocket_top = self.pallet_type.pocket_height
+        pt = p.type
+        pocket_top = pt.pocket_height
         forks_x, forks_y = corners[:2, :, 0], corners[:2, :, 1]
-        depth_in = np.minimum(forks_x.max(axis=1), self.pallet_type.length) - np.maximum(forks_x.min(axis=1), 0.0)
+        depth_in = np.minimum(forks_x.max(axis=1), pt.length) - np.maximum(forks_x.min(axis=1), 0.0)
         inside = (
-            np.all(depth_in >= 0.5 * self.pallet_type.length)
-            and np.all(np.abs(forks_y) <= 0.5 * self.pallet_type.width)
+            np.all(depth_in >= 0.5 * pt.length)
+            and np.all(np.abs(forks_y) <= 0.5 * pt.width)
             and np.all(z[:2, 1] >= pocket_top - 1e-3)
             and np.all(z[:2, 0] < pocket_top)
         )

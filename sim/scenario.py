@@ -33,6 +33,14 @@ noise:
 pallets:                          # placed at roadmap pallet nodes plus the misplacement
   - {node: rack_b3, dx: 0.10, dy: -0.15, dyaw_deg: 5, loaded: true}   # dx, dy in the node's frame (m)
   - {x: 14.0, y: 2.0, yaw_deg: 90, loaded: false}                      # free on the floor, no node
+  - node: floor_b2                # optional, per pallet (defaults: a new EUR pallet)
+    type: industrial              # eur, industrial, industrial_long, half, plastic or a pallet type file
+    loaded: true
+    overhang_m: 0.04              # the load's front this far past the entry face (0..0.1 m; loaded only)
+    film: true                    # load and top deck wrapped in stretch film (class cargo; loaded only)
+    tolerance_m: 0.005            # boards and blocks off their drawing by up to this (0..0.01 m) ...
+    tolerance_seed: 3             # ... drawn with this seed (which also picks the chipped corners)
+    damage: {chipped_blocks: 2, chip_m: 0.03, missing_bottom_boards: [1]}   # entry-row blocks; boards 0..2
 clutter:
   - {kind: person, x: 12.0, y: 3.0, yaw_deg: 0}
   - {kind: person, x: 6.0, y: 18.0, path: [[6.0, 2.0]], speed: 1.2, repeat: true}  # walks the aisle
@@ -53,6 +61,7 @@ from palletpilot.geometry import SE3, PalletpilotError, wrap_angle
 from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.sim.camera import CameraNoise, camera_mount_pose
 from palletpilot.sim.faults import FaultSpec
+from palletpilot.sim.world import PalletCondition
 
 
 class SimError(PalletpilotError):
@@ -121,9 +130,30 @@ class NoiseSpec(_Strict):
     slip_sigma: float = Field(0.0, ge=0.0, le=0.5)
 
 
+class PalletDamage(_Strict):
+    """Wear and damage of one pallet (`sim.world.PalletCondition`): chipped entry-row blocks, missing
+    bottom boards."""
+
+    chipped_blocks: int = Field(0, ge=0, le=3, description="entry-row blocks missing a chunk of their face")
+    chip_m: float = Field(0.03, ge=0.005, le=0.06, description="size of each chunk (m)")
+    missing_bottom_boards: list[Literal[0, 1, 2]] = Field(
+        default_factory=list,
+        max_length=3,
+        description="bottom boards gone (runners right to left, perimeter front to back)",
+    )
+
+
 class PalletPlacement(_Strict):
     """A pallet at a roadmap pallet node, misplaced by (dx, dy, dyaw) in the node's frame; or standing
-    free on the floor at (x, y, yaw_deg): its pallet frame (the entry face's centre) in the world."""
+    free on the floor at (x, y, yaw_deg): its pallet frame (the entry face's centre) in the world.
+
+    The pallet itself (all optional, defaults: a new EUR pallet): `type` (a built-in name of
+    `perception.specs.PALLET_NAMES` or a pallet type file relative to the scenario), `tolerance_m`
+    (boards and blocks off the drawing by up to this, 0..0.01 m, drawn with `tolerance_seed`, which
+    also picks the chipped corners), `damage` (`PalletDamage`), and for a loaded pallet `overhang_m`
+    (the load's front past the entry face, 0..0.1 m) and `film` (load and top deck wrapped in stretch
+    film).
+    """
 
     node: str | None = None
     dx: float = Field(0.0, ge=-MAX_MISPLACEMENT_M, le=MAX_MISPLACEMENT_M)
@@ -133,6 +163,12 @@ class PalletPlacement(_Strict):
     y: float | None = Field(None, ge=-MAX_COORD_M, le=MAX_COORD_M)
     yaw_deg: float = Field(0.0, ge=-360.0, le=360.0)
     loaded: bool = False
+    type: str = Field("eur", min_length=1, max_length=4096)
+    tolerance_m: float = Field(0.0, ge=0.0, le=0.01)
+    tolerance_seed: int = Field(0, ge=0, le=2**64 - 1)
+    damage: PalletDamage = PalletDamage()
+    overhang_m: float = Field(0.0, ge=0.0, le=0.1)
+    film: bool = False
 
     @model_validator(mode="after")
     def _one_place(self) -> PalletPlacement:
@@ -143,7 +179,22 @@ class PalletPlacement(_Strict):
             raise ValueError("a free-standing pallet needs both x and y")
         if free and {"dx", "dy", "dyaw_deg"} & self.model_fields_set:
             raise ValueError("dx, dy, dyaw_deg: only with node")
+        for name in ("overhang_m", "film"):
+            if getattr(self, name) and not self.loaded:
+                raise ValueError(f"{name}: only with a load (loaded: true)")
         return self
+
+    def condition(self) -> PalletCondition:
+        """The pallet's build, damage and load as the simulator renders them."""
+        return PalletCondition(
+            tolerance_m=self.tolerance_m,
+            seed=self.tolerance_seed,
+            chipped_blocks=self.damage.chipped_blocks,
+            chip_m=self.damage.chip_m,
+            missing_bottom_boards=tuple(self.damage.missing_bottom_boards),
+            overhang_m=self.overhang_m,
+            film=self.film,
+        )
 
 
 class ClutterSpec(_Strict):

@@ -25,10 +25,18 @@ import open3d as o3d
 
 from palletpilot.control.safety import FIELD_SETS, SafetyState
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
-from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry import SE2, SE3, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks, pallet_pose_at_node
+from palletpilot.perception.specs import (
+    ForkGeometry,
+    PalletType,
+    builtin_pallet,
+    load_forks,
+    load_pallet_type,
+    pallet_pose_at_node,
+    pallet_type,
+)
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
 from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids, solid_corners
@@ -56,7 +64,30 @@ BEAM_MAX_RANGE_M = 4.0
 """Range of the fork-tip proximity beams (m); farther hits read as `inf`."""
 
 CARGO_SIZE = (1.15, 0.78, 0.9)
-"""Cargo box on a loaded pallet (m, x y z)."""
+"""Cargo box on a loaded EUR pallet (m, x y z); other types: `cargo_size`."""
+
+
+def cargo_size(pallet: PalletType) -> tuple[float, float, float]:
+    """The cargo box on a loaded pallet of this type (m, x y z): 5 cm shorter and 2 cm narrower than it."""
+    return (round(pallet.length - 0.05, 6), round(pallet.width - 0.02, 6), CARGO_SIZE[2])
+
+
+def _pallet_types(scenario: Scenario) -> list[PalletType]:
+    """Each placed pallet's type (`pallets[i].type`: a built-in name or a file relative to the scenario)."""
+    out, problems, cache = [], [], {}
+    for i, placement in enumerate(scenario.pallets):
+        name = placement.type
+        if name not in cache:
+            where = scenario.path(name)
+            try:
+                cache[name] = builtin_pallet(name) or (load_pallet_type(where) if where.suffix else pallet_type(name))
+            except PalletpilotError as exc:
+                problems += [f"{scenario.source}: pallets[{i}].type: {line}" for line in exc.problems]
+                continue
+        out.append(cache[name])
+    raise_problems(problems, SimError)
+    return out
+
 
 WALKER_YIELD_M = 0.5
 """A walking person waits rather than come closer than this (m) to the truck."""
@@ -70,10 +101,7 @@ class Simulator(PalletPhysics):
         self.seed = scenario.seed if seed is None else seed
         self.rng = np.random.default_rng(self.seed)
         self.roadmap, self.vehicle, self.forks = _load_references(scenario, start)
-        self.pallet_type = PalletType.eur()
-        self._pallet_parts = self.pallet_type.parts()
-        self._part_lo = np.array([p.lo for p in self._pallet_parts])
-        self._part_hi = np.array([p.hi for p in self._pallet_parts])
+        self.pallet_type = PalletType.eur()  # what the executor is told; each pallet has its own (`SimPallet.type`)
 
         start_id = start or scenario.start
         start_node = self.roadmap.node(start_id)
@@ -98,16 +126,22 @@ class Simulator(PalletPhysics):
         self.scanner = SimScanner(self.vehicle)
 
         self.pallets: list[SimPallet] = []
+        types = _pallet_types(scenario)
         for i, placement in enumerate(scenario.pallets):
+            pt, condition = types[i], placement.condition()
             if placement.node is None:  # free on the floor
                 assert placement.x is not None and placement.y is not None
                 T_world_pallet = SE2(placement.x, placement.y, math.radians(placement.yaw_deg)).to_se3()
-                self.pallets.append(SimPallet("", T_world_pallet, placement.loaded, id=f"pallets[{i}]"))
+                self.pallets.append(
+                    SimPallet("", T_world_pallet, placement.loaded, id=f"pallets[{i}]", type=pt, condition=condition)
+                )
                 continue
             node = self.roadmap.node(placement.node)
             misplacement = SE2(placement.dx, placement.dy, math.radians(placement.dyaw_deg)).to_se3()
             T_world_pallet = pallet_pose_at_node(node.pose, node.height) @ misplacement
-            self.pallets.append(SimPallet(node.id, T_world_pallet, placement.loaded, id=node.id))
+            self.pallets.append(
+                SimPallet(node.id, T_world_pallet, placement.loaded, id=node.id, type=pt, condition=condition)
+            )
         self._racks = self._build_racks()
         self._fixed_mesh = self._build_fixed_mesh()
         self._fixed_solids = self._build_fixed_solids()
@@ -265,13 +299,14 @@ class Simulator(PalletPhysics):
 
     def _pallet_solids(self, p: SimPallet, kind: str = "pallet") -> list[Solid]:
         """A pallet (and its load) as solids: the whole pallet box, the cargo box."""
-        pt, pose = self.pallet_type, p.T_world_pallet.to_se2()
+        pt, pose = p.type, p.T_world_pallet.to_se2()
         z0 = float(p.T_world_pallet.t[2])
         load_kind = "load" if kind == "pallet" else "carried load"
         solids = [box_solid(kind, p.id, pose, (0.0, -0.5 * pt.width, z0), (pt.length, 0.5 * pt.width, z0 + pt.height))]
         if p.loaded:
-            cx, cy, cz = CARGO_SIZE
-            x0, top = 0.5 * (pt.length - cx), z0 + pt.height
+            cx, cy, cz = cargo_size(pt)
+            overhang = p.condition.overhang_m if p.condition is not None else 0.0
+            x0, top = (-overhang if overhang > 0.0 else 0.5 * (pt.length - cx)), z0 + pt.height
             solids.append(box_solid(load_kind, p.id, pose, (x0, -0.5 * cy, top), (x0 + cx, 0.5 * cy, top + cz)))
         return solids
 
@@ -313,7 +348,8 @@ class Simulator(PalletPhysics):
         self.forklift.state.v = 0.0  # blocked
 
     def _pallet_mesh(self, p: SimPallet) -> LabeledMesh:
-        return pallet_mesh(p.T_world_pallet, self.pallet_type, cargo_size=CARGO_SIZE if p.loaded else None)
+        cargo = cargo_size(p.type) if p.loaded else None
+        return pallet_mesh(p.T_world_pallet, p.type, cargo_size=cargo, condition=p.condition)
 
     def _static_changed(self) -> None:
         self._renderer = None
@@ -400,7 +436,7 @@ class Simulator(PalletPhysics):
         T_fw = self.T_world_forklift3.inv()
         for p in self.pallets:
             if p.carried:
-                far = T_fw @ p.T_world_pallet @ SE3.from_translation(self.pallet_type.length, 0.0, 0.0)
+                far = T_fw @ p.T_world_pallet @ SE3.from_translation(p.type.length, 0.0, 0.0)
                 front = max(front, float(far.t[0]))
         return front
 

@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike
 
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.frames import SemanticClass
-from palletpilot.perception.specs import ForkGeometry, PalletType
+from palletpilot.perception.specs import ForkGeometry, PalletPart, PalletType
 
 
 class Texture(IntEnum):
@@ -303,42 +303,139 @@ class Rack:
 # -- objects ----------------------------------------------------------------------------------------
 
 
+PLASTIC_BLUE = (0.10, 0.20, 0.42)
+FILM_CLEAR = (0.80, 0.82, 0.84)
+FILM_GAP_M = 0.003
+"""Stretch film stands this far (m) off what it wraps."""
+
+
+@dataclass(frozen=True)
+class PalletCondition:
+    """How one real pallet differs from its type's drawing, and how its load stands on it.
+
+    - `tolerance_m`: every face of every board and block is off the drawing by up to +-tolerance/2
+      (uniform), so sizes are off by up to +-tolerance and positions by +-tolerance/2; faces on the
+      floor stay on it.
+    - `chipped_blocks`: that many blocks of the entry row (at random) miss a chunk of `chip_m` on
+      their entry face: a corner (chip_m on each side) or a whole vertical edge (chip_m deep and wide).
+    - `missing_bottom_boards`: indices of bottom boards that are gone (runners right to left,
+      perimeter boards front to back); the blocks above stay where they were.
+    - `overhang_m`: the load's front stands this far past the entry face.
+    - `film`: the load and the top deck are wrapped in stretch film (class cargo), which hangs down
+      over the top deck's front (past the entry face with an overhanging load).
+    `seed` draws the tolerances and the chips.
+    """
+
+    tolerance_m: float = 0.0
+    seed: int = 0
+    chipped_blocks: int = 0
+    chip_m: float = 0.03
+    missing_bottom_boards: tuple[int, ...] = ()
+    overhang_m: float = 0.0
+    film: bool = False
+
+
+def _box_minus(lo: np.ndarray, hi: np.ndarray, klo: np.ndarray, khi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The box [lo, hi] without the box [klo, khi] (clipped to it) as up to six boxes."""
+    klo, khi = np.maximum(klo, lo), np.minimum(khi, hi)
+    if np.any(khi <= klo):
+        return [(lo, hi)]
+    out = []
+    cur_lo, cur_hi = lo.copy(), hi.copy()
+    for axis in range(3):
+        if klo[axis] > cur_lo[axis]:
+            a_hi = cur_hi.copy()
+            a_hi[axis] = klo[axis]
+            out.append((cur_lo.copy(), a_hi))
+        if khi[axis] < cur_hi[axis]:
+            b_lo = cur_lo.copy()
+            b_lo[axis] = khi[axis]
+            out.append((b_lo, cur_hi.copy()))
+        cur_lo[axis], cur_hi[axis] = klo[axis], khi[axis]
+    return out
+
+
+def pallet_parts(pallet: PalletType, condition: PalletCondition | None = None) -> list[PalletPart]:
+    """The boards and blocks of one real pallet: the type's parts (`PalletType.parts`) as `condition` changes them."""
+    parts = pallet.parts()
+    if condition is None or condition == PalletCondition(overhang_m=condition.overhang_m, film=condition.film):
+        return parts
+    rng = np.random.default_rng(condition.seed)
+    out: list[PalletPart] = []
+    for part in parts:
+        if part.kind == "bottom_board" and int(part.name.rsplit("_", 1)[1]) in condition.missing_bottom_boards:
+            continue
+        lo, hi = part.lo.copy(), part.hi.copy()
+        if condition.tolerance_m > 0.0:
+            half = 0.5 * condition.tolerance_m
+            d_lo, d_hi = rng.uniform(-half, half, 3), rng.uniform(-half, half, 3)
+            d_lo[2] = 0.0 if lo[2] <= 0.0 else d_lo[2]  # on the floor stays on the floor
+            lo, hi = lo + d_lo, hi + d_hi
+        out.append(PalletPart(part.name, part.kind, lo, hi))
+    n_chip = min(condition.chipped_blocks, 3)
+    if n_chip:
+        front = [i for i, p in enumerate(out) if p.kind == "block" and p.name.startswith("block_0")]
+        for i in rng.choice(front, size=min(n_chip, len(front)), replace=False):
+            block = out[int(i)]
+            c = condition.chip_m
+            lo, hi = block.lo, block.hi
+            left = bool(rng.random() < 0.5)
+            ky = (hi[1] - c, hi[1]) if left else (lo[1], lo[1] + c)
+            shape = rng.integers(3)  # 0: top corner, 1: bottom corner, 2: the whole vertical edge
+            kz = ((hi[2] - c, hi[2]), (lo[2], lo[2] + c), (lo[2], hi[2]))[int(shape)]
+            klo, khi = np.array([lo[0], ky[0], kz[0]]), np.array([lo[0] + c, ky[1], kz[1]])
+            pieces = [
+                PalletPart(f"{block.name}_{k}", "block", a, b) for k, (a, b) in enumerate(_box_minus(lo, hi, klo, khi))
+            ]
+            out[int(i)] = pieces[0]
+            out.extend(pieces[1:])
+    return out
+
+
 def pallet_mesh(
     T_world_pallet: SE3 | SE2,
     pallet: PalletType | None = None,
     cargo_size: ArrayLike | None = None,
     wood: ArrayLike = PINE,
+    condition: PalletCondition | None = None,
 ) -> LabeledMesh:
     """A pallet from its real parts (boards and blocks), optionally loaded with a cargo box.
 
-    `cargo_size` (x, y, z in m) puts a cardboard box (class cargo) centred on the top deck; the pallet's
-    own triangles are then pallet-full (8) instead of pallet-empty (7). Parts alternate slightly in
-    tone, as boards from different planks do.
+    `cargo_size` (x, y, z in m) puts a cardboard box (class cargo) centred on the top deck (with
+    `condition.overhang_m`, its front that far past the entry face); the pallet's own triangles are
+    then pallet-full (8) instead of pallet-empty (7). `condition` (`PalletCondition`) gives build
+    tolerances, damage and stretch film. Parts alternate slightly in tone, as boards from different
+    planks do; a plastic pallet (`material: plastic`) is one plain colour.
     """
     pallet = pallet or PalletType.eur()
     semantic = SemanticClass.PALLET_EMPTY if cargo_size is None else SemanticClass.PALLET_FULL
-    base = np.asarray(wood, dtype=float)
+    plastic = pallet.material == "plastic"
+    base = np.asarray(PLASTIC_BLUE if plastic else wood, dtype=float)
     parts = []
-    for i, part in enumerate(pallet.parts()):
+    for i, part in enumerate(pallet_parts(pallet, condition)):
         tone = base * (0.92 + 0.08 * ((i * 7) % 5) / 4.0)
         grain = (1, 0, 0) if part.kind in ("top_board", "bottom_board") else (0, 1, 0)
         if part.kind == "block":
             grain = (0, 0, 1)
             tone = tone * 0.9  # blocks are often chipboard, a little darker
-        parts.append(box_mesh(part.lo, part.hi, semantic, tone, Texture.WOOD, grain=grain))
+        if plastic:
+            parts.append(box_mesh(part.lo, part.hi, semantic, base, Texture.PLAIN))
+        else:
+            parts.append(box_mesh(part.lo, part.hi, semantic, tone, Texture.WOOD, grain=grain))
     if cargo_size is not None:
         cx, cy, cz = np.asarray(cargo_size, dtype=float)
-        x0 = 0.5 * (pallet.length - cx)
-        parts.append(
-            box_mesh(
-                (x0, -0.5 * cy, pallet.height),
-                (x0 + cx, 0.5 * cy, pallet.height + cz),
-                SemanticClass.CARGO,
-                CARDBOARD_BROWN,
-                Texture.CARDBOARD,
-                grain=(0, 0, 1),
-            )
-        )
+        overhang = 0.0 if condition is None else condition.overhang_m
+        x0 = -overhang if overhang > 0.0 else 0.5 * (pallet.length - cx)
+        lo, hi = np.array([x0, -0.5 * cy, pallet.height]), np.array([x0 + cx, 0.5 * cy, pallet.height + cz])
+        if condition is not None and condition.film:
+            g = FILM_GAP_M
+            parts.append(box_mesh(lo - g, hi + g, SemanticClass.CARGO, FILM_CLEAR, Texture.PLAIN))
+            # The film also wraps the top deck, down to the cross boards (from the load's front when it overhangs).
+            skirt_lo = np.array([min(x0, 0.0) - g, -0.5 * pallet.width - g, pallet.height - pallet.top_board_thickness])
+            skirt_hi = np.array([max(x0 + cx, pallet.length) + g, 0.5 * pallet.width + g, pallet.height + g])
+            parts.append(box_mesh(skirt_lo, skirt_hi, SemanticClass.CARGO, FILM_CLEAR, Texture.PLAIN))
+        else:
+            parts.append(box_mesh(lo, hi, SemanticClass.CARGO, CARDBOARD_BROWN, Texture.CARDBOARD, grain=(0, 0, 1)))
     return LabeledMesh.merge(parts).transformed(T_world_pallet)
 
 

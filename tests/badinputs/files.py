@@ -362,6 +362,27 @@ SCENARIOS: list[Case] = [
         spoil(SCENARIO, lambda d: d["pallets"].append({"x": 1e7, "y": 1.0})),
     ),
     Case(
+        "scenario_pallet_chipped_too_many",
+        RENDER,
+        2,
+        "pallets[0].damage.chipped_blocks: Input should be less than or equal to 3",
+        spoil(SCENARIO, pallet(0, damage={"chipped_blocks": 7})),
+    ),
+    Case(
+        "scenario_pallet_type_unknown",
+        RENDER,
+        2,
+        "pallets[0].type: crate: not a known pallet type",
+        spoil(SCENARIO, pallet(0, type="crate")),
+    ),
+    Case(
+        "scenario_pallet_overhang_empty",
+        RENDER,
+        2,
+        "overhang_m: only with a load (loaded: true)",
+        spoil(SCENARIO, pallet(0, loaded=False, overhang_m=0.04)),
+    ),
+    Case(
         "scenario_box_negative",
         RENDER,
         2,
