@@ -3,10 +3,13 @@
 ```yaml
 name: pick up a misplaced pallet and deliver it
 map: warehouse.yaml               # relative to this file
+pallet_type: eur                  # optional: the pallets this mission handles (a built-in name or a
+                                  # pallet type file relative to this file; default eur)
 return_on_failure: true           # optional: after a failed task wait at the nearest parking node
 blocked_wait_s: 30                # optional: a blocked path holds a task this long (s), then path_blocked
 tasks:
   - {type: pickup, node: floor_b2}              # height (m): default the pallet node's height
+  - {type: pickup, node: floor_a1, pallet_type: industrial}   # this pallet's own type
   - {type: delivery, node: drop, height: 0.0}   # put the pallet down at a drop (or pallet) node
   - {type: move, node: a_top, return_on_failure: false}   # per task (pickup, delivery, move)
   - {type: charge, node: charger, minutes: 5}   # or until_level: 0.9 (needs a battery reading)
@@ -14,8 +17,12 @@ tasks:
 ```
 
 Validation reports every problem, one line each, naming the task: unknown node, a node of the wrong
-type for the task, a height outside the mast's range, and a node that cannot be reached from where
-the previous task leaves the forklift.
+type for the task, a height outside the mast's range, a node that cannot be reached from where
+the previous task leaves the forklift, and a pallet type that is neither built in nor a valid file.
+
+The pallet type is what the Pickup is told to look for (a pallet of another type is refused,
+`pallet_not_found`) and what it aligns the forks with; a delivery puts down the pallet of the last
+pickup (or, loaded at the start, the mission's type).
 """
 
 from __future__ import annotations
@@ -27,7 +34,9 @@ from pydantic import Field, model_validator
 
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.geometry import PalletpilotError
+from palletpilot.geometry.errors import raise_problems
 from palletpilot.geometry.fileio import FileModel, load_yaml_model
+from palletpilot.perception.specs import PalletType, pallet_type_in
 from palletpilot.roadmap import NodeType, Planner, Roadmap, RoadmapError
 
 
@@ -50,6 +59,7 @@ class PickupTask(_Task):
     type: Literal["pickup"]
     node: str
     height: float | None = Field(None, ge=0.0, le=20.0, description="pallet height (m); default: the node's")
+    pallet_type: str | None = Field(None, min_length=1, max_length=4096, description="default: the mission's")
     return_on_failure: bool | None = _RETURN_ON_FAILURE
 
 
@@ -108,6 +118,9 @@ class Mission(FileModel):
     map: str
     loaded_at_start: bool = False
     """The forks carry a load when the mission starts (default: empty)."""
+    pallet_type: str = Field("eur", min_length=1, max_length=4096)
+    """The pallets this mission handles: a built-in name (`perception.specs.PALLET_NAMES`) or a pallet type
+    file relative to the mission; a pickup task's own `pallet_type` overrides it."""
     return_on_failure: bool | None = None
     """After a failed task (not a collision, sensor timeout, internal error, vehicle or localization fault
     or a cancel: then the truck stays stopped), leave for the nearest parking node of the map and wait
@@ -132,6 +145,32 @@ class Mission(FileModel):
             return bool(own)
         return default if self.return_on_failure is None else self.return_on_failure
 
+    def pallet_types(self, where: str = "mission") -> list[PalletType]:
+        """The type of the pallet each task handles: a pickup's own `pallet_type` or the mission's; a
+        delivery (and any other task) that of the pallet on the forks, i.e. the last pickup's, else the
+        mission's. Raises `MissionError` with one line per bad name (`where: tasks[i].pallet_type: ...`)."""
+        problems: list[str] = []
+        cache: dict[str, PalletType] = {}
+
+        def resolve(name: str, field: str) -> PalletType:
+            if name not in cache:
+                try:
+                    cache[name] = pallet_type_in(name, self.folder)
+                except PalletpilotError as exc:
+                    problems.extend(f"{where}: {field}: {line}" for line in exc.problems)
+                    cache[name] = PalletType.eur()
+            return cache[name]
+
+        default = resolve(self.pallet_type, "pallet_type")
+        carried, out = default, []
+        for i, task in enumerate(self.tasks):
+            if isinstance(task, PickupTask):
+                own = task.pallet_type
+                carried = default if own is None else resolve(own, f"tasks[{i}].pallet_type")
+            out.append(carried)
+        raise_problems(problems, MissionError)
+        return out
+
 
 def load_mission(path: str | Path) -> Mission:
     """Read a mission file; schema problems raise `MissionError` (one line each, with the field)."""
@@ -149,6 +188,10 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
     `start` None (an unknown start, reported elsewhere): reachability is not checked.
     """
     problems: list[str] = []
+    try:
+        mission.pallet_types(where)
+    except MissionError as exc:
+        problems += exc.problems
     planner = Planner(roadmap)
     here = start
     mast = vehicle.mast

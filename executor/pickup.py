@@ -161,13 +161,13 @@ class EstimatePallet(Behaviour):
             if len(self.frames) < wanted:
                 return None
             taken = list(self.frames)
-            expected = _expected_pallet(ctx)
+            expected, pallet = _expected_pallet(ctx), ctx.pallet_type
 
             def estimate() -> tuple[list[PalletEstimate], list[str]]:
                 estimates, errors = [], []
                 for f, pose, _ in taken:
                     try:
-                        estimates.append(perception.estimate_pallet(f, calibration, pose, expected))
+                        estimates.append(perception.estimate_pallet(f, calibration, pose, expected, pallet))
                     except PerceptionError as exc:
                         errors.append(str(exc))
                 return estimates, errors

@@ -86,9 +86,11 @@ class PerceptionService(Protocol):
         calibration: Calibration,
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
+        pallet: PalletType | None = None,
     ) -> PalletEstimate:
         """The pallet's pose (raises `PalletNotFound`); with `expected_T_world_pallet` (world frame) only
-        the pallet instance standing there, within a gate, is taken (`perception.instances`)."""
+        the pallet instance standing there, within a gate, is taken (`perception.instances`). `pallet`:
+        the type to look for (another type is `PalletNotFound`); None: the service's own default."""
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
         """Depth points inside an upright box ahead of the forks (forklift frame), and how much of it was seen."""
@@ -130,12 +132,18 @@ class LocalPerception:
         calibration: Calibration,
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
+        pallet: PalletType | None = None,
     ) -> PalletEstimate:
         """Estimate the pallet's pose in the forklift and world frames; with `expected_T_world_pallet`
-        (world) only the pallet instance standing there is fitted."""
+        (world) only the pallet instance standing there is fitted; `pallet`: the type (default: this
+        service's)."""
         expected = None if expected_T_world_pallet is None else T_world_forklift.inv() @ expected_T_world_pallet
         return estimate_pallet(
-            self._labelled(frame), calibration, self.pallet, T_world_forklift=T_world_forklift, expected=expected
+            self._labelled(frame),
+            calibration,
+            pallet or self.pallet,
+            T_world_forklift=T_world_forklift,
+            expected=expected,
         )
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:

@@ -108,6 +108,7 @@ class Runner:
         watchdog_limits: WatchdogLimits | None = None,
     ) -> None:
         self.mission = mission
+        self.pallet_types = mission.pallet_types()  # per task: the pallet it handles
         self.clock = clock
         self.settings = settings or Settings()
         if mission.blocked_wait_s is not None:
@@ -139,7 +140,7 @@ class Runner:
             follower=follower or MpcFollower(params),
             params=params,
             forks=forks,
-            pallet_type=PalletType.eur(),
+            pallet_type=self.pallet_types[0] if self.pallet_types else PalletType.eur(),
             settings=self.settings,
             now=self.task_time,
             log=self._log,
@@ -242,6 +243,7 @@ class Runner:
                 ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
             self._log("task_start", index=index, type=task.type, node=node)
         ctx.task = task
+        ctx.pallet_type = self.pallet_types[index]
         ctx.record = result.record
         model = build_machine(kind, initial=start_state)
         with contextlib.ExitStack() as stack:

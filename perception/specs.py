@@ -601,6 +601,16 @@ def pallet_type(name: str) -> PalletType:
     return load_pallet_type(name)
 
 
+def pallet_type_in(name: str, folder: Path) -> PalletType:
+    """A pallet type named in a file (a mission, a scenario): a built-in name (`PALLET_NAMES`) or a pallet
+    type file relative to `folder` (that file's folder). Raises `PerceptionError`, one line per problem."""
+    builtin = builtin_pallet(name)
+    if builtin is not None:
+        return builtin
+    where = folder / name
+    return load_pallet_type(where) if where.suffix else pallet_type(name)
+
+
 ENTRY_GAP_M = 0.05
 """At a pallet node the pallet's entry face stands this far ahead of the fork heels (forklift x = 0),
 so the fork tips reach `tip_x - ENTRY_GAP_M` into the pallet."""

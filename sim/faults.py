@@ -504,11 +504,16 @@ class FaultyPerception:
         return self._inner.calibrate(frames)
 
     def estimate_pallet(
-        self, frame: Any, calibration: Any, T_world_forklift: SE2, expected_T_world_pallet: SE2 | None = None
+        self,
+        frame: Any,
+        calibration: Any,
+        T_world_forklift: SE2,
+        expected_T_world_pallet: SE2 | None = None,
+        pallet: Any = None,
     ) -> Any:
         """`inner.estimate_pallet(...)` with the active perception faults."""
         self._faulted()
-        return self._inner.estimate_pallet(frame, calibration, T_world_forklift, expected_T_world_pallet)
+        return self._inner.estimate_pallet(frame, calibration, T_world_forklift, expected_T_world_pallet, pallet)
 
     @property
     def last_good(self) -> Any:

@@ -31,11 +31,9 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import (
     ForkGeometry,
     PalletType,
-    builtin_pallet,
     load_forks,
-    load_pallet_type,
     pallet_pose_at_node,
-    pallet_type,
+    pallet_type_in,
 )
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
@@ -78,9 +76,8 @@ def _pallet_types(scenario: Scenario) -> list[PalletType]:
     for i, placement in enumerate(scenario.pallets):
         name = placement.type
         if name not in cache:
-            where = scenario.path(name)
             try:
-                cache[name] = builtin_pallet(name) or (load_pallet_type(where) if where.suffix else pallet_type(name))
+                cache[name] = pallet_type_in(name, scenario.folder)
             except PalletpilotError as exc:
                 problems += [f"{scenario.source}: pallets[{i}].type: {line}" for line in exc.problems]
                 continue

@@ -229,3 +229,69 @@ def test_a_pallet_of_another_type_is_not_found_with_the_reason(seen: str, told: 
         errors(f, told)
     assert info.value.reason in reasons
     assert pallet_type(told).name in str(info.value)
+
+
+# -- missions name the pallet type --------------------------------------------------------------------
+
+
+def _mission(tmp_path: Path, tasks: list[dict], **fields: object) -> Path:
+    path = tmp_path / "mission.yaml"
+    path.write_text(yaml.safe_dump({"name": "t", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks, **fields}))
+    return path
+
+
+def _industrial_scenario() -> Scenario:
+    sc = Scenario.model_validate(
+        {
+            "map": "warehouse.yaml",
+            "start": "b1",
+            "seed": 5,
+            "pallets": [{"node": "floor_b2", "type": "industrial", "dy": 0.08, "dyaw_deg": 3}],
+        }
+    )
+    sc.folder = MISSIONS
+    return sc
+
+
+def test_a_mission_picks_the_pallet_type_it_names(tmp_path: Path) -> None:
+    from palletpilot.executor.app import run_simulated
+
+    mission = _mission(tmp_path, [{"type": "pickup", "node": "floor_b2", "pallet_type": "industrial"}])
+    r = run_simulated(mission, scenario=_industrial_scenario(), report_dir=tmp_path / "report")
+    assert r.success and r.sim.pallets[0].carried and r.sim.collisions == []
+
+
+def test_a_pallet_of_another_type_than_the_mission_names_is_not_lifted(tmp_path: Path) -> None:
+    from palletpilot.executor.app import run_simulated
+
+    mission = _mission(tmp_path, [{"type": "pickup", "node": "floor_b2"}])  # the mission's default: eur
+    r = run_simulated(mission, scenario=_industrial_scenario(), report_dir=tmp_path / "report")
+    task = r.summary["tasks"][0]
+    assert not r.success and task["reason"] == "pallet_not_found"
+    assert not r.sim.pallets[0].lifted and r.sim.collisions == []
+
+
+def test_pallet_types_per_task_follow_the_load(tmp_path: Path) -> None:
+    from palletpilot.executor.mission import load_mission
+
+    (tmp_path / "mine.yaml").write_text(yaml.safe_dump({"name": "mine", "width": 1.0, "length": 1.2}))
+    tasks = [
+        {"type": "pickup", "node": "floor_b2", "pallet_type": "mine.yaml"},
+        {"type": "delivery", "node": "drop"},
+        {"type": "pickup", "node": "floor_b3"},
+        {"type": "move", "node": "b1"},
+    ]
+    types = load_mission(_mission(tmp_path, tasks, pallet_type="half")).pallet_types()
+    assert [t.name for t in types] == ["mine", "mine", pallet_type("half").name, pallet_type("half").name]
+
+
+def test_a_bad_pallet_type_in_a_mission_is_one_line_per_problem(tmp_path: Path, capsys) -> None:
+    from palletpilot.cli import main
+
+    tasks = [{"type": "pickup", "node": "floor_b2", "pallet_type": "crate"}]
+    path = _mission(tmp_path, tasks, pallet_type="nowhere.yaml")
+    code = main(["run", str(path), "--report", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert f"{path}: tasks[0].pallet_type: crate: not a known pallet type" in err
+    assert any(line.startswith(f"{path}: pallet_type: ") and "nowhere.yaml" in line for line in err.splitlines())

@@ -196,7 +196,9 @@ class FakePerception:
         self.calls += 1
         return "calibration"
 
-    def estimate_pallet(self, frame: Any, calibration: Any, T_world_forklift: SE2, expected: Any = None) -> str:
+    def estimate_pallet(
+        self, frame: Any, calibration: Any, T_world_forklift: SE2, expected: Any = None, pallet: Any = None
+    ) -> str:
         self.calls += 1
         return "estimate"
 
