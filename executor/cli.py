@@ -241,7 +241,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_examples(args: argparse.Namespace) -> int:
     """List the bundled example files (map, vehicle, forks, scenarios, missions), or copy them to --out."""
     folder = bundled_path("missions")
-    names = sorted(p.name for p in folder.iterdir() if p.suffix == ".yaml")
+    # the example files and the example test suite (`suite/`, whose files refer to `../`)
+    names = sorted(str(p.relative_to(folder)) for p in [*folder.glob("*.yaml"), *folder.glob("suite/*.yaml")])
     if not args.out:
         print(f"{folder}:")
         for name in names:
@@ -256,6 +257,7 @@ def cmd_examples(args: argparse.Namespace) -> int:
             if target.exists():
                 print(f"examples: {target}: exists, left alone", file=sys.stderr)
                 continue
+            target.parent.mkdir(exist_ok=True)
             write_atomic(target, (folder / name).read_bytes())
             copied += 1
     except OSError as exc:
@@ -365,6 +367,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
         "palletpilot.executor.cli_segmentation",
+        "palletpilot.executor.cli_test",
     ):
         importlib.import_module(module).add_parsers(sub)
     for extend in extensions:
