@@ -13,6 +13,7 @@ from palletpilot.executor.app import run_simulated
 from palletpilot.executor.mission import MissionError
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import Scenario
+from palletpilot.testing import assert_checks, assert_failed, assert_succeeded
 
 MISSIONS = bundled_path("missions")
 
@@ -64,15 +65,16 @@ def test_aligned_pallet_is_picked_without_replanning(tmp_path, monkeypatch):
     assert (tmp_path / "report" / "events.jsonl").read_text().count("state_start") >= 8
 
 
-def test_misplaced_pallet_is_picked_after_replanning(tmp_path):
+def test_misplaced_pallet_is_picked_after_replanning(tmp_path, run_mission):
     sc = scenario("b1", [{"node": "floor_b2", "dx": 0.12, "dy": -0.2, "dyaw_deg": 6.0}])
-    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], sc)
+    r = run_mission(mission_file(tmp_path, [{"type": "pickup", "node": "floor_b2"}]), sc)
+    assert_succeeded(r)
+    assert_checks(r, max_replans=3)  # no contact, travel height, nothing else moved
     task = r.summary["tasks"][0]
-    assert r.success, r.runner.results[0].message
     assert task["attempts"] >= 2  # estimated off, re-planned, estimated aligned
-    assert r.sim.pallets[0].carried and r.sim.collisions == []
+    assert r.sim.pallets[0].carried
     assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())  # temporary nodes removed
-    report = json.loads((tmp_path / "report" / "report.json").read_text())["tasks"][0]
+    report = json.loads(Path(r.report).read_text())["tasks"][0]
     assert report["estimates"][0]["aligned"] is False and report["estimates"][-1]["aligned"] is True
     assert report["temporary_nodes"][0]["pallet"] == "floor_b2~1"
 
@@ -87,11 +89,11 @@ def test_a_mount_too_steep_for_a_far_load_is_reported_and_the_pickup_still_works
     assert not any("entry face" in p for w in warnings for p in w["problems"])  # the face stays in view
 
 
-def test_missing_pallet_fails_cleanly(tmp_path):
-    r = run(tmp_path, [{"type": "pickup", "node": "floor_b2"}], scenario("b1", []))
-    task = r.summary["tasks"][0]
-    assert not r.success and task["result"] == "failed" and task["reason"] == "pallet_not_found"
-    assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == []
+def test_missing_pallet_fails_cleanly(tmp_path, run_mission):
+    r = run_mission(mission_file(tmp_path, [{"type": "pickup", "node": "floor_b2"}]), scenario("b1", []))
+    assert_failed(r, "pallet_not_found")
+    assert_checks(r)
+    assert abs(r.sim.speed) < 1e-3
 
 
 def test_pallet_too_far_off_fails_cleanly(tmp_path):
@@ -109,16 +111,16 @@ def test_pallet_too_far_off_fails_cleanly(tmp_path):
     assert "replan" not in [s["state"] for s in r.runner.results[0].states]
 
 
-def test_rack_pickup_at_height(tmp_path):
+def test_rack_pickup_at_height(tmp_path, run_mission):
     sc = scenario("a1", [{"node": "rack_a2", "dx": -0.03, "dy": 0.1, "dyaw_deg": -3.0, "loaded": True}])
-    r = run(tmp_path, [{"type": "pickup", "node": "rack_a2"}], sc)
-    assert r.success, r.runner.results[0].message
+    r = run_mission(mission_file(tmp_path, [{"type": "pickup", "node": "rack_a2"}]), sc)
+    assert_succeeded(r)
+    assert_checks(r)  # among them: loaded and faster than creep speed, the forks at travel height
     pallet = r.sim.pallets[0]
     assert pallet.carried and pallet.T_world_pallet.t[2] < 0.5  # lifted off the 1.0 m beam, carried low
-    assert r.sim.collisions == []
     # Above travel height the truck only creeps; it drives the roadmap with the load at travel height.
     mast, creep = r.sim.vehicle.mast, r.sim.vehicle.creep_speed
-    rows = list(csv.DictReader((tmp_path / "report" / "trajectory.csv").open()))
+    rows = list(csv.DictReader((Path(r.report).parent / "trajectory.csv").open()))
     raised = [r for r in rows if float(r["fork_height_m"]) > mast.travel_height_loaded + 0.05]
     assert raised and max(abs(float(r["speed_mps"])) for r in raised) <= creep + 0.02
     assert abs(float(rows[-1]["fork_height_m"]) - mast.travel_height_loaded) < 0.005

@@ -20,8 +20,9 @@ def test_person_blocks_the_aisle(run_mission):
 `run_mission(mission, scenario=None, *, seed=None, folder=None, **run_options)` runs the mission in the
 simulator with its report in the test's `tmp_path` and returns an `executor.app.SimRun` (`success`,
 `summary`, `sim`, `runner`, `report`). `scenario` is a scenario file, a scenario mapping (files in it
-relative to `folder`) or None (the default warehouse). The checks are those of `palletpilot test`
-(`executor.suite_run.check_run`), so a suite case and a pytest test mean the same thing.
+relative to `folder`), a `sim.scenario.Scenario`, or None (the default warehouse). The checks are
+those of `palletpilot test` (`executor.suite_run.check_run`), so a suite case and a pytest test mean
+the same thing.
 
 Public API: the fixture `run_mission`; `assert_succeeded`, `assert_failed`, `assert_checks`, `checks_of`.
 """
@@ -36,6 +37,7 @@ import pytest
 
 if TYPE_CHECKING:  # the simulator is imported when a test runs a mission, not when pytest loads plugins
     from palletpilot.executor.app import SimRun
+    from palletpilot.sim.scenario import Scenario
 
 RunMission = Callable[..., "SimRun"]
 
@@ -47,7 +49,7 @@ def run_mission(tmp_path: Path) -> RunMission:
 
     def run(
         mission: str | Path,
-        scenario: str | Path | dict[str, Any] | None = None,
+        scenario: str | Path | dict[str, Any] | Scenario | None = None,
         *,
         seed: int | None = None,
         folder: str | Path | None = None,
@@ -57,6 +59,8 @@ def run_mission(tmp_path: Path) -> RunMission:
         from palletpilot.sim.scenario import Scenario
 
         report = tmp_path / f"run{next(calls)}"
+        if isinstance(scenario, Scenario):
+            return run_simulated(mission, seed=seed, report_dir=report, scenario=scenario, **options)
         if isinstance(scenario, dict):
             sc = Scenario.model_validate(scenario)
             sc.folder = Path(folder) if folder is not None else Path(mission).parent
