@@ -5,8 +5,11 @@ misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal (in a rack at mos
 `RACK_DEEPER_MAX_M`) and +-10 deg, D435 noise with label
 noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5) with a random per-run perturbation,
 localization noise; the forklift starts at the aisle node before the pallet's pre-pallet node and runs
-a single pickup. The same scenarios are run adaptively and with `--no-adapt` (no camera, only the
-proximity safety check). Success: the pallet is on the forks and nothing collided.
+a single pickup. The same scenarios are run in each mode (`--modes`): `adaptive` (the adaptive Pickup,
+perception segmenting the simulator's RGB with the shipped ONNX model, as on a truck), `adaptive_truth`
+(the same with the simulator's labels, label noise on: what the geometry alone achieves) and
+`no_adapt` (the paper's original Pickup: no camera, only the proximity safety check). Success: the
+pallet is on the forks and nothing collided.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from palletpilot.executor.cli_args import count, names, seed
 from palletpilot.geometry.fileio import bundled_path
 
 MISSIONS = bundled_path("missions")
-MODES = ("adaptive", "no_adapt")
+MODES = ("adaptive", "adaptive_truth", "no_adapt")
 RACK_DEEPER_MAX_M = 0.13
 """A rack pallet stands at most this much deeper than its node: further, the mast would meet the rack
 beam before the fork tips reach the back blocks (`Settings.rack_overrun` + the far tolerance), and the
@@ -37,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=count(1), default=100)
     parser.add_argument("--seed", type=seed, default=0)
     parser.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes")
-    parser.add_argument("--modes", type=names(MODES), default=list(MODES), help="comma-separated: adaptive, no_adapt")
+    parser.add_argument(
+        "--modes", type=names(MODES), default=list(MODES), help="comma-separated: adaptive, adaptive_truth, no_adapt"
+    )
 
 
 def _scenarios(runs: int, seed: int) -> list[dict]:
@@ -89,12 +94,13 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
     return out
 
 
-def _one(job: tuple[dict, bool]) -> dict:
+def _one(job: tuple[dict, str]) -> dict:
     """Run one scenario in one mode; returns the outcome (in a worker process)."""
     from palletpilot.executor.app import run_simulated
     from palletpilot.sim.scenario import Scenario
 
-    spec, adapt = job
+    spec, mode = job
+    adapt = mode != "no_adapt"
     sc = Scenario.model_validate(spec["scenario"])
     sc.folder = MISSIONS
     with tempfile.TemporaryDirectory() as tmp:
@@ -105,7 +111,7 @@ def _one(job: tuple[dict, bool]) -> dict:
             )
         )
         t0 = time.perf_counter()
-        run = run_simulated(mission, scenario=sc, adapt=adapt)
+        run = run_simulated(mission, scenario=sc, adapt=adapt, labels="truth" if mode == "adaptive_truth" else "model")
         wall = time.perf_counter() - t0
     task = run.runner.results[0]
     lifted = bool(run.sim.pallets and run.sim.pallets[0].carried)
@@ -113,7 +119,7 @@ def _one(job: tuple[dict, bool]) -> dict:
     reason = None if success else (task.reason or ("collision" if run.sim.collisions else "pallet_not_lifted"))
     return {
         "index": spec["index"],
-        "adapt": adapt,
+        "mode": mode,
         "node": spec["node"],
         "success": success,
         "reason": reason,
@@ -127,7 +133,7 @@ def run(args: argparse.Namespace) -> dict:
     """Run every scenario in each mode and return the figures."""
     specs = _scenarios(args.runs, args.seed)
     modes = list(args.modes)
-    jobs = [(s, m == "adaptive") for m in modes for s in specs]
+    jobs = [(s, m) for m in modes for s in specs]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:
             outcomes = list(pool.map(_one, jobs))
@@ -135,7 +141,7 @@ def run(args: argparse.Namespace) -> dict:
         outcomes = [_one(j) for j in jobs]
     result: dict = {"runs": args.runs, "seed": args.seed}
     for mode in modes:
-        mine = [o for o in outcomes if o["adapt"] == (mode == "adaptive")]
+        mine = [o for o in outcomes if o["mode"] == mode]
         ok = [o for o in mine if o["success"]]
         result[mode] = {
             "success_rate": round(len(ok) / len(mine), 4),

@@ -15,6 +15,7 @@ the mission ran is recorded in `SimRun.write_errors` (the CLI exits 3 when the m
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import uuid
 from collections.abc import Callable
@@ -39,12 +40,17 @@ from palletpilot.executor.trajectory_log import TrajectoryLog
 from palletpilot.geometry import OutputError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, validate_model
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
 from palletpilot.sim.scenario import Scenario, SimError, load_scenario
 from palletpilot.sim.simulator import Simulator
 
 ClockKind = Literal["sim", "wall"]
+Labels = Literal["model", "truth"]
+"""Where perception's labels come from in a simulated run: the shipped ONNX model on the RGB, or the
+simulator's exact labels (`truth`)."""
 
 
 @dataclass
@@ -112,12 +118,15 @@ def run_simulated(
     clock: ClockKind = "sim",
     journal: str | Path | None = None,
     controls: Controls | None = None,
+    labels: Labels = "model",
 ) -> SimRun:
     """Validate and run a mission in the simulator; write the report when `report_dir` is given.
 
     `clock`: `sim` (simulated time, deterministic) or `wall` (real time at 20 Hz). `journal`: an SQLite
     file that records the progress for `resume_simulated`. `on_start(runner)` is called once the
     runner exists and before it runs. `controls`: pause / cancel flags (the CLI's signal handlers).
+    `labels`: `model` (perception segments the simulator's RGB with the shipped ONNX model, as on a
+    truck) or `truth` (the simulator's exact labels, with its label noise; for comparison).
     """
     mission, roadmap, vehicle, sim, scenario = _load_run(mission_path, scenario_path, scenario, seed)
     folder = Path(report_dir).resolve() if report_dir is not None else None
@@ -134,6 +143,7 @@ def run_simulated(
             "report_dir": None if folder is None else str(folder),
             "adapt": adapt,
             "clock": clock,
+            "labels": labels,
         }
         book = Journal.create(journal, meta)
     run_id = book.meta["run_id"] if book is not None else uuid.uuid4().hex
@@ -155,6 +165,7 @@ def run_simulated(
         controls,
         run_id,
         None,
+        labels=labels,
     )
 
 
@@ -269,6 +280,7 @@ def resume_simulated(
         controls,
         str(meta["run_id"]),
         point,
+        labels=meta.get("labels", "truth"),  # journals from before the option ran on the simulator's labels
     )
 
 
@@ -288,6 +300,7 @@ def _execute(
     controls: Controls | None,
     run_id: str,
     point: ResumePoint | None,
+    labels: Labels = "model",
 ) -> SimRun:
     settings = settings or Settings()
     settings.adapt = adapt
@@ -295,7 +308,13 @@ def _execute(
     if point is not None:
         injector.skip_until(point.t)
         injector.skip_states(point.started_states())
-    perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type)) if adapt else None
+    perception, grab = None, injector.grab
+    if adapt:
+        segmenter = None
+        if labels == "model":  # the truck's view: RGB through the shipped model, no labels from the simulator
+            segmenter = OnnxSegmenter(DEFAULT_MODEL)
+            grab = _without_labels(injector.grab)
+        perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
 
     log: TrajectoryLog | None = None
 
@@ -330,7 +349,7 @@ def _execute(
             roadmap,
             injector.vehicle,
             perception,
-            injector.grab,
+            grab,
             clock,
             vehicle,
             sim.forks,
@@ -361,6 +380,15 @@ def _execute(
         except OutputError as exc:
             write_errors.append(str(exc))
     return SimRun(success, runner, sim, summary(success, runner.results), report, write_errors)
+
+
+def _without_labels(grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle]:
+    """`grab` whose frames carry no labels: perception must segment the RGB itself."""
+
+    def frame() -> FrameBundle:
+        return dataclasses.replace(grab(), labels=None)
+
+    return frame
 
 
 def _first_reason(runner: Runner) -> str | None:

@@ -213,6 +213,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             clock=args.clock,
             journal=args.journal,
             controls=CONTROLS,
+            labels=args.labels,
         )
     report = result.report.parent if result.report is not None else None
     if args.json:
@@ -317,6 +318,12 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     run.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     run.add_argument("--report", type=out_folder, help="report folder (default out/run)")
     run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
+    run.add_argument(
+        "--labels",
+        choices=("model", "truth"),
+        default="model",
+        help="perception's labels: the shipped ONNX model on the RGB (default, as on a truck) or the simulator's",
+    )
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
     run.add_argument("--quiet", action="store_true", help="no live progress")
     run.add_argument("--clock", choices=("sim", "wall"), default="sim", help="simulated time (default) or real time")
