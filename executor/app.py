@@ -18,10 +18,10 @@ import contextlib
 import dataclasses
 import hashlib
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TextIO
+from typing import TYPE_CHECKING, Any, Literal, TextIO
 
 import numpy as np
 
@@ -46,6 +46,9 @@ from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
 from palletpilot.sim.scenario import Scenario, SimError, load_scenario
 from palletpilot.sim.simulator import Simulator
+
+if TYPE_CHECKING:  # zenoh loads only for a run that uses the perception service
+    from palletpilot.executor.perception_remote import PerceptionMode
 
 ClockKind = Literal["sim", "wall"]
 Labels = Literal["model", "truth"]
@@ -119,6 +122,8 @@ def run_simulated(
     journal: str | Path | None = None,
     controls: Controls | None = None,
     labels: Labels = "model",
+    perception: PerceptionMode = "local",
+    perception_connect: Sequence[str] = (),
 ) -> SimRun:
     """Validate and run a mission in the simulator; write the report when `report_dir` is given.
 
@@ -127,6 +132,8 @@ def run_simulated(
     runner exists and before it runs. `controls`: pause / cancel flags (the CLI's signal handlers).
     `labels`: `model` (perception segments the simulator's RGB with the shipped ONNX model, as on a
     truck) or `truth` (the simulator's exact labels, with its label noise; for comparison).
+    `perception`: `local` (in this process), `remote` (the `palletpilot perception serve` service at
+    `perception_connect`) or `serve-local` (a service started for the run; `executor.perception_remote`).
     """
     mission, roadmap, vehicle, sim, scenario = _load_run(mission_path, scenario_path, scenario, seed)
     folder = Path(report_dir).resolve() if report_dir is not None else None
@@ -166,6 +173,8 @@ def run_simulated(
         run_id,
         None,
         labels=labels,
+        perception_mode=perception,
+        perception_connect=perception_connect,
     )
 
 
@@ -301,6 +310,8 @@ def _execute(
     run_id: str,
     point: ResumePoint | None,
     labels: Labels = "model",
+    perception_mode: PerceptionMode = "local",
+    perception_connect: Sequence[str] = (),
 ) -> SimRun:
     settings = settings or Settings()
     settings.adapt = adapt
@@ -312,9 +323,10 @@ def _execute(
     if adapt:
         segmenter = None
         if labels == "model":  # the truck's view: RGB through the shipped model, no labels from the simulator
-            segmenter = OnnxSegmenter(DEFAULT_MODEL)
+            segmenter = OnnxSegmenter(DEFAULT_MODEL) if perception_mode == "local" else None  # else the service's
             grab = _without_labels(injector.grab)
-        perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
+        if perception_mode == "local":
+            perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
 
     log: TrajectoryLog | None = None
 
@@ -334,6 +346,11 @@ def _execute(
     follower.step_fault = injector.step_failure
     write_errors: list[str] = []
     with contextlib.ExitStack() as stack:
+        if adapt and perception_mode != "local":  # the service is stopped when the run ends, however it ends
+            from palletpilot.executor.perception_remote import remote_perception
+
+            service = remote_perception(perception_mode, perception_connect, sim.forks, sim.pallet_type, DEFAULT_MODEL)
+            perception = injector.perception(stack.enter_context(service))
         events = None
         if folder is not None:
             try:

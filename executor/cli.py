@@ -11,13 +11,16 @@ Commands:
 - `palletpilot map show MAP --out PNG [--route FROM TO]`
 - `palletpilot plan MAP FROM TO [--json]`
 - `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]
-  [--clock sim|wall] [--journal FILE]`, `palletpilot run --demo`, `palletpilot run --resume JOURNAL`;
+  [--clock sim|wall] [--journal FILE] [--perception local|remote|serve-local] [--perception-connect ENDPOINT]`,
+  `palletpilot run --demo`, `palletpilot run --resume JOURNAL`;
   `palletpilot mission diagram TASK [--out FILE]`; `palletpilot examples [--out DIR]`
 - `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]
   [--pallet eur|FILE.yaml]`; it also checks that the calibrated mount shows a pallet's entry face and
   load at the Pickup's distances (`perception.view`), with a warning on stderr when it does not
 - `palletpilot forks measure FRAME.npz [...] --forks FORKS.yaml --out NEW_FORKS.yaml` (the blade's taper)
 - `palletpilot capture --out DIR [--count N] [--serial S]`, `palletpilot capture --recording FILE --out DIR`
+- `palletpilot perception serve [--camera realsense|none] [--model M.onnx] [--forks F] [--pallet P]
+  [--listen ENDPOINT] [--connect ENDPOINT] [--prefix KEY]` (`executor.cli_perception`)
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
 - `palletpilot bench NAME [--json] [bench options]` is added by `palletpilot.cli` (see `bench/`)
 """
@@ -35,6 +38,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
+from palletpilot.executor.cli_perception import endpoint
 from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
@@ -186,6 +190,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from palletpilot.executor.controls import CONTROLS
 
     progress = None if args.json or args.quiet else sys.stderr
+    if args.perception_connect and args.perception != "remote":
+        print("run: --perception-connect names the service of --perception remote; give both", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if args.resume and args.perception != "local":
+        print("run: --resume continues with perception in process; give no --perception with it", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.resume:
         if args.mission or args.scenario or args.demo or args.journal or args.seed is not None or args.report:
             print(
@@ -214,6 +224,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             journal=args.journal,
             controls=CONTROLS,
             labels=args.labels,
+            perception=args.perception,
+            perception_connect=args.perception_connect or [],
         )
     report = result.report.parent if result.report is not None else None
     if args.json:
@@ -324,6 +336,20 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         default="model",
         help="perception's labels: the shipped ONNX model on the RGB (default, as on a truck) or the simulator's",
     )
+    run.add_argument(
+        "--perception",
+        choices=("local", "remote", "serve-local"),
+        default="local",
+        help="perception in process (default), the service at --perception-connect (`perception serve`), "
+        "or a service started for the run",
+    )
+    run.add_argument(
+        "--perception-connect",
+        action="append",
+        type=endpoint,
+        metavar="ENDPOINT",
+        help="the perception service for --perception remote (default tcp/127.0.0.1:7447)",
+    )
     run.add_argument("--json", action="store_true", help="print the summary as JSON")
     run.add_argument("--quiet", action="store_true", help="no live progress")
     run.add_argument("--clock", choices=("sim", "wall"), default="sim", help="simulated time (default) or real time")
@@ -373,6 +399,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_capture",
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
+        "palletpilot.executor.cli_perception",
         "palletpilot.executor.cli_segmentation",
         "palletpilot.executor.cli_test",
     ):

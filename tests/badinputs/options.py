@@ -58,7 +58,7 @@ CASES: list[Case] = [
         "opt_bench_missions_modes_unknown",
         bench("missions", "--modes", "adaptive,fast"),
         2,
-        "--modes: unknown 'fast' (known: adaptive,no_adapt)",
+        "--modes: unknown 'fast' (known: adaptive,adaptive_truth,no_adapt)",
     ),
     Case("opt_bench_missions_modes_empty", bench("missions", "--modes", ","), 2, "--modes: empty list"),
     Case("opt_bench_safety_runs_0", bench("safety", "--runs", "0"), 2, "--runs: must be an integer >= 1"),
@@ -263,4 +263,58 @@ CASES: list[Case] = [
         lambda fx, folder: world(fx, folder / "lager ü"),
     ),
     Case("ok_scenario_with_bom", ("sim", "render", "{case}/" + SCENARIO, "--out", "{case}/f.npz"), 0, "", with_bom),
+]
+
+SERVE = ("perception", "serve")
+CASES += [
+    # perception as a service (`perception serve`, `run --perception`)
+    Case("opt_serve_camera_unknown", (*SERVE, "--camera", "kinect"), 2, "--camera: invalid choice: 'kinect'"),
+    Case(
+        "opt_serve_listen_no_protocol", (*SERVE, "--listen", "127.0.0.1:7447"), 2, "--listen: must be a Zenoh endpoint"
+    ),
+    Case(
+        "opt_serve_connect_port_range",
+        (*SERVE, "--connect", "tcp/router:99999"),
+        2,
+        "--connect: must be tcp/HOST:PORT with a port 0..65535",
+    ),
+    Case(
+        "opt_serve_prefix_wildcard",
+        (*SERVE, "--prefix", "palletpilot/*"),
+        2,
+        "--prefix: must be a key such as palletpilot/perception",
+    ),
+    Case(
+        "opt_serve_model_missing",
+        (*SERVE, "--model", "{case}/nothere.onnx"),
+        2,
+        "nothere.onnx: segmentation model not found",
+    ),
+    Case("opt_serve_forks_missing", (*SERVE, "--forks", "{case}/nothere.yaml"), 2, "nothere.yaml: cannot read"),
+    Case("opt_serve_pallet_unknown", (*SERVE, "--pallet", "crate"), 2, "crate: not a known pallet type"),
+    Case("opt_run_perception_unknown", (*RUN, "--perception", "cloud"), 2, "--perception: invalid choice: 'cloud'"),
+    Case(
+        "opt_run_perception_connect_bad",
+        (*RUN, "--perception", "remote", "--perception-connect", "localhost"),
+        2,
+        "--perception-connect: must be a Zenoh endpoint",
+    ),
+    Case(
+        "opt_run_perception_connect_not_remote",
+        (*RUN, "--perception-connect", "tcp/127.0.0.1:7447"),
+        2,
+        "--perception-connect names the service of --perception remote",
+    ),
+    Case(
+        "opt_run_perception_resume",
+        ("run", "--resume", "{case}/j.db", "--perception", "serve-local"),
+        2,
+        "--resume continues with perception in process",
+    ),
+    Case(
+        "opt_run_perception_remote_nobody",
+        (*RUN, "--perception", "remote", "--perception-connect", "tcp/127.0.0.1:1"),
+        2,
+        "perception service unavailable",
+    ),
 ]
