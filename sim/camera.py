@@ -20,6 +20,12 @@ Noise (`CameraNoise`), all drawn from the `numpy.random.Generator` passed in:
 - flying pixels: at depth edges a share of pixels takes a depth between foreground and background;
 - dropouts at `invalid_rate`, depth quantised to `depth_unit_m` (1 mm, the Z16 unit);
 - no depth closer than `min_depth_m` (0.28 m) or beyond `max_depth_m`;
+- stereo shadow (`stereo_shadow`): no depth where the right IR imager, `baseline_m` to the image right,
+  cannot see the point: the no-depth band on the image-left side of foreground objects, computed from
+  the exact depth (`sim.depth_artefacts`);
+- depth scale error (`depth_scale_error`): every depth times `1 + s`, s uniform in +-`depth_scale_error`,
+  fixed per camera (per seeded generator) and recorded in the bundle's truth as `depth_scale_true`;
+- `depth_noise: false` turns every depth artefact off (exact depth, only the range limits apply);
 - optional label noise: each class's boundary dilated or eroded by up to `label_noise_px` pixels (the
   exact labels stay in the bundle's truth as `labels_true`);
 - RGB sensor noise and per-frame lighting variation.
@@ -43,6 +49,7 @@ from scipy.spatial.transform import Rotation
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import FileModel
 from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.sim.depth_artefacts import depth_scale, shadow_candidates, stereo_shadow
 from palletpilot.sim.world import LabeledMesh, Texture, o3d_tensor
 
 D435_COLOR_VFOV_DEG = 42.8
@@ -111,13 +118,17 @@ class CameraNoise(FileModel):
 
     model_config = ConfigDict(frozen=True)
 
-    depth_noise: bool = True
+    depth_noise: bool = True  # every depth artefact below; false: exact depth
     disparity_sigma_px: float = Field(D435_SUBPIXEL_PX, ge=0, le=5.0, description="stereo subpixel error (px)")
     baseline_m: float = Field(D435_BASELINE_M, gt=0, le=1.0)
     depth_unit_m: float = Field(0.001, ge=0, le=0.1, description="depth quantisation (m); 0 = none")
     invalid_rate: float = Field(0.005, ge=0, le=1, description="share of pixels randomly without depth")
     flying_pixel_rate: float = Field(0.5, ge=0, le=1, description="share of depth-edge pixels that fly")
     edge_jump_rel: float = Field(0.08, gt=0, le=1.0, description="depth jump (fraction of z) that makes an edge")
+    stereo_shadow: bool = Field(True, description="no depth where something hides the point from the right IR imager")
+    depth_scale_error: float = Field(
+        0.003, ge=0, le=0.05, description="max relative depth scale error, drawn once per camera in +-this"
+    )
     label_noise: bool = False
     label_noise_px: int = Field(2, ge=0, le=50, description="max boundary dilation / erosion (px)")
     rgb_sigma: float = Field(2.0, ge=0, le=100.0, description="RGB sensor noise std (8-bit levels)")
@@ -126,7 +137,14 @@ class CameraNoise(FileModel):
     @classmethod
     def off(cls) -> CameraNoise:
         """An ideal camera: exact depth (only the range limits apply), clean labels, steady light."""
-        return cls(depth_noise=False, label_noise=False, rgb_sigma=0.0, lighting_variation=False)
+        return cls(
+            depth_noise=False,
+            stereo_shadow=False,
+            depth_scale_error=0.0,
+            label_noise=False,
+            rgb_sigma=0.0,
+            lighting_variation=False,
+        )
 
     def sigma_z(self, z: ArrayLike, depth_focal_px: float) -> np.ndarray:
         """Depth noise std (m) at z-depth z (m): z^2 s / (f B)."""
@@ -390,7 +408,8 @@ class RaycastRenderer:
         `dynamic` meshes (world frame) join the static world for this frame. `noise` defaults to an
         ideal camera; `rng` is required whenever noise or lighting variation draws random numbers.
         `fork_height` (m) and `truth` (keys ending in `_true`) are passed through to the bundle; with
-        label noise, the exact labels are added to the truth as `labels_true`.
+        label noise, the exact labels are added to the truth as `labels_true`, with depth noise the
+        camera's depth scale error s (measured z = true z (1 + s)) as `depth_scale_true` (0-d float64).
         """
         noise = noise or CameraNoise.off()
         needs_rng = noise.depth_noise or noise.label_noise or noise.rgb_sigma > 0 or noise.lighting_variation
@@ -417,8 +436,18 @@ class RaycastRenderer:
 
         labels = np.take(sc.classes, prim).reshape(h, w)
         rgb = self._shade(T_world_camera, prim, hits["primitive_uvs"].numpy(), rc, sc, lighting, noise, rng)
-        depth = self._measure_depth(z, hit, camera, rc, noise, rng)
         truth = dict(truth or {})
+        shadow, scale = None, 0.0
+        if noise.depth_noise:
+            assert rng is not None  # checked above (needs_rng)
+            if noise.stereo_shadow:
+                fx, base = float(camera.K[0, 0]), noise.baseline_m
+                shadow = shadow_candidates(z, hit, fx, base, w, (rc.f[0], rc.f[1]))
+                shadow = shadow[(z[shadow] >= camera.min_depth_m) & (z[shadow] <= camera.max_depth_m)]
+                shadow = stereo_shadow(sc.scene, T_world_camera, rc.world_directions, z, shadow, base)
+            scale = depth_scale(rng, noise.depth_scale_error)
+            truth["depth_scale_true"] = np.array(scale)
+        depth = self._measure_depth(z, hit, camera, rc, noise, rng, shadow, scale)
         if noise.label_noise:
             truth["labels_true"] = labels  # the exact labels, to score a segmenter against
             assert rng is not None  # checked above (needs_rng)
@@ -500,8 +529,13 @@ class RaycastRenderer:
         rc: _RayCache,
         noise: CameraNoise,
         rng: np.random.Generator | None,
+        shadow: np.ndarray | None = None,
+        scale: float = 0.0,
     ) -> np.ndarray:
-        """Turn true z-depth (N,; inf where missed) into a D435-like measurement (N,), 0 = no data."""
+        """Turn true z-depth (N,; inf where missed) into a D435-like measurement (N,), 0 = no data.
+
+        With depth noise: `shadow` (flat pixel indices) get no depth, the rest is scaled by `1 + scale`.
+        """
         depth = np.zeros(z.shape, np.float32)
         np.copyto(depth, z, where=hit)
         if noise.depth_noise:
@@ -523,6 +557,10 @@ class RaycastRenderer:
                 lo = z_min[idx]
                 hi = np.minimum(z_max[idx], np.float32(camera.max_depth_m))
                 depth[idx] = lo + rng.random(idx.size, dtype=np.float32) * (hi - lo)
+            if shadow is not None:
+                depth[shadow] = 0.0  # the right imager cannot see these points: no disparity
+            if scale != 0.0:
+                depth *= np.float32(1.0 + scale)
             # Stereo: the disparity d = f B / z is measured with a subpixel error; z = f B / d.
             fb = np.float32(camera.depth_focal_px * noise.baseline_m)
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -24,6 +24,8 @@ camera:
     depth_noise: true             # sigma(z) = z^2 * disparity_sigma_px / (f * baseline_m)
     invalid_rate: 0.005           # share of depth pixels with no data
     flying_pixel_rate: 0.5        # share of depth-edge pixels that mix depths
+    stereo_shadow: true           # no depth where the right imager (50 mm to +x) cannot see the point
+    depth_scale_error: 0.003      # every depth times 1 + s, s drawn once per camera in +-this
     label_noise: false            # random dilation / erosion of class boundaries ...
     label_noise_px: 2             # ... by up to this many pixels
 noise:

@@ -20,7 +20,15 @@ from palletpilot.sim.camera import (
     perturb_labels,
     render,
 )
-from palletpilot.sim.world import example_world, floor_mesh, forks_mesh, pallet_mesh, wall_mesh
+from palletpilot.sim.depth_artefacts import depth_scale
+from palletpilot.sim.world import (
+    example_world,
+    floor_mesh,
+    forks_mesh,
+    object_box_mesh,
+    pallet_mesh,
+    wall_mesh,
+)
 
 FORKS_FILE = bundled_path("missions") / "forks.yaml"
 CAMERA = CameraModel.d435(640, 480)
@@ -108,7 +116,8 @@ def test_no_depth_closer_than_min_range_but_labels_stay() -> None:
 def test_noise_spread_matches_d435_model(floor_renderer: RaycastRenderer) -> None:
     T_world_camera = SE3.from_translation(0.0, 0.0, 1.2) @ camera_mount_pose((0.0, 0.0, 0.0), np.deg2rad(35.0))
     truth = floor_renderer.render(T_world_camera, CAMERA, CameraNoise.off()).depth
-    noise = CameraNoise(flying_pixel_rate=0.0, invalid_rate=0.01, lighting_variation=False)
+    # The zero-mean part only: no scale error (a bias, tested below).
+    noise = CameraNoise(flying_pixel_rate=0.0, invalid_rate=0.01, depth_scale_error=0.0, lighting_variation=False)
     rng = np.random.default_rng(7)
     frames = [floor_renderer.render(T_world_camera, CAMERA, noise, rng).depth for _ in range(3)]
     measured = np.stack(frames)
@@ -142,6 +151,8 @@ def test_flying_pixels_lie_between_foreground_and_background() -> None:
         depth_unit_m=0.0,
         invalid_rate=0.0,
         flying_pixel_rate=1.0,
+        stereo_shadow=False,
+        depth_scale_error=0.0,
         rgb_sigma=0.0,
         lighting_variation=False,
     )
@@ -254,3 +265,126 @@ def test_label_noise_moves_only_class_boundaries(pickup_view: tuple) -> None:
     near_boundary = cv2.dilate(fb.labels, kernel) != cv2.erode(fb.labels, kernel)
     assert np.all(near_boundary[changed])
     assert changed.sum() < 0.1 * changed.size
+
+
+# -- stereo shadow and depth scale error ---------------------------------------------------------------
+
+# Only the stereo shadow: no disparity noise, quantisation, dropouts, flying pixels or scale error.
+ONLY_SHADOW = CameraNoise(
+    disparity_sigma_px=0.0,
+    depth_unit_m=0.0,
+    invalid_rate=0.0,
+    flying_pixel_rate=0.0,
+    depth_scale_error=0.0,
+    rgb_sigma=0.0,
+    lighting_variation=False,
+)
+
+
+def _shadowed(renderer: RaycastRenderer, T_world_camera: SE3, noise: CameraNoise) -> tuple[np.ndarray, FrameBundle]:
+    """Pixels with exact depth that lose it with `noise` (seed 1), and the exact frame."""
+    clean = renderer.render(T_world_camera, CAMERA, CameraNoise.off())
+    noisy = renderer.render(T_world_camera, CAMERA, noise, np.random.default_rng(1))
+    gone = (clean.depth > 0) & (noisy.depth == 0)
+    # Nothing else changes (but float32 rounding: the depth goes through a disparity and back).
+    np.testing.assert_allclose(noisy.depth[~gone], clean.depth[~gone], rtol=1e-6, atol=0)
+    return gone, clean
+
+
+def test_stereo_shadow_is_a_band_left_of_a_box_of_the_expected_width() -> None:
+    box = object_box_mesh(SE2(2.0, 0.0, 0.0), (0.4, 0.4, 0.6))  # front face at x = 1.8 m
+    renderer = RaycastRenderer([floor_mesh(-5.0, -10.0, 30.0, 10.0), box])
+    T_world_camera = SE3.from_translation(0.0, 0.0, 0.8) @ camera_mount_pose((0.0, 0.0, 0.0), np.deg2rad(12.0))
+    gone, clean = _shadowed(renderer, T_world_camera, ONLY_SHADOW)
+    on_box = clean.labels == SemanticClass.OTHER_OBJECT
+    fb = CAMERA.K[0, 0] * ONLY_SHADOW.baseline_m
+    expected_band = np.zeros_like(gone)
+    widths = []
+    for v in np.flatnonzero(on_box.any(axis=1)):
+        u_box = np.flatnonzero(on_box[v])[0]  # the box's left edge in this row
+        band = np.flatnonzero(gone[v])
+        # The floor point just left of the band: the right imager sees it past the box's edge.
+        u_floor = (band.min() if band.size else u_box) - 1
+        assert clean.labels[v, u_floor] == SemanticClass.DRIVABLE
+        width = fb * (1.0 / clean.depth[v, u_box] - 1.0 / clean.depth[v, u_floor])
+        assert band.size == pytest.approx(width, abs=1.0), v
+        if band.size:
+            assert band.max() == u_box - 1 and band.size == band.max() - band.min() + 1  # contiguous, at the box
+            expected_band[v, band.min() : u_box] = True
+        widths.append(width)
+    assert max(widths) > 8.0  # a real band: the box top's far edge against the floor 1 m behind it
+    assert np.array_equal(gone, expected_band)  # no shadow anywhere else (open floor, right of the box)
+    # Without the stereo shadow (everything else equal): no band.
+    gone_off, _ = _shadowed(renderer, T_world_camera, ONLY_SHADOW.model_copy(update={"stereo_shadow": False}))
+    assert not gone_off.any()
+
+
+def test_stereo_shadow_leaves_the_open_floor_whole(floor_renderer: RaycastRenderer) -> None:
+    T_world_camera = SE3.from_translation(0.0, 0.0, 1.1) @ camera_mount_pose(
+        (0.0, 0.0, 0.0), np.deg2rad(40.0), pan=0.2, roll=0.15
+    )
+    gone, clean = _shadowed(floor_renderer, T_world_camera, ONLY_SHADOW)
+    assert clean.valid_depth().mean() > 0.9 and not gone.any()
+
+
+def test_stereo_shadow_of_a_thin_pole_is_detached_and_as_wide_as_the_pole() -> None:
+    # A 2 cm pole 0.6 m ahead of a wall 3 m away: the right imager sees the wall between the pole and
+    # its shadow, which is the pole's width, fB (1/0.6 - 1/3) px to the left of the pole.
+    pole = object_box_mesh(SE2(0.61, 0.0, 0.0), (0.02, 0.02, 3.0))  # front face at x = 0.6 m
+    renderer = RaycastRenderer([wall_mesh((3.1, -10.0), (3.1, 10.0), height=6.0), pole])
+    T_world_camera = SE3.from_translation(0.0, 0.0, 1.5) @ camera_mount_pose((0.0, 0.0, 0.0), 0.0)
+    gone, clean = _shadowed(renderer, T_world_camera, ONLY_SHADOW)
+    v = CAMERA.height // 2
+    on_pole = np.flatnonzero(clean.labels[v] == SemanticClass.OTHER_OBJECT)
+    band = np.flatnonzero(gone[v])
+    shift = CAMERA.K[0, 0] * ONLY_SHADOW.baseline_m * (1.0 / 0.6 - 1.0 / 3.0)  # ~41 px
+    assert on_pole.size == pytest.approx(0.02 * CAMERA.K[0, 0] / 0.6, abs=1.0)  # ~20 px
+    assert band.size == pytest.approx(on_pole.size, abs=1.0)
+    assert band.size == band.max() - band.min() + 1
+    assert band.min() == pytest.approx(on_pole.min() - shift, abs=1.0)
+    assert band.max() < on_pole.min() - 15  # detached: the wall shows between
+    assert np.array_equal(gone.any(axis=1), (clean.labels == SemanticClass.OTHER_OBJECT).any(axis=1))
+
+
+def test_depth_scale_error_is_fixed_per_camera_and_seeded(floor_renderer: RaycastRenderer) -> None:
+    T_world_camera = SE3.from_translation(0.0, 0.0, 1.2) @ camera_mount_pose((0.0, 0.0, 0.0), np.deg2rad(35.0))
+    true = floor_renderer.render(T_world_camera, CAMERA, CameraNoise.off())
+    assert "depth_scale_true" not in true.truth
+    ideal = floor_renderer.render(T_world_camera, CAMERA, CameraNoise.off(), np.random.default_rng(1))
+    assert np.array_equal(ideal.depth, true.depth)  # off: ratio exactly 1, whatever the generator
+    noise = CameraNoise(invalid_rate=0.0, flying_pixel_rate=0.0, rgb_sigma=0.0, lighting_variation=False)
+    assert noise.depth_scale_error == 0.003 and noise.stereo_shadow  # on by default
+    assert not CameraNoise.off().stereo_shadow and CameraNoise.off().depth_scale_error == 0.0
+    scales = []
+    for seed in (1, 2, 3):
+        rng = np.random.default_rng(seed)
+        frames = [floor_renderer.render(T_world_camera, CAMERA, noise, rng) for _ in range(2)]
+        s = float(frames[0].truth["depth_scale_true"])
+        assert float(frames[1].truth["depth_scale_true"]) == s  # one camera, one scale
+        again = floor_renderer.render(T_world_camera, CAMERA, noise, np.random.default_rng(seed))
+        assert float(again.truth["depth_scale_true"]) == s  # deterministic for a seed
+        assert abs(s) <= 0.003
+        for frame in frames:
+            ok = (true.depth > 1.0) & (true.depth < 3.0) & (frame.depth > 0)
+            assert ok.sum() > 50000
+            ratio = frame.depth[ok] / true.depth[ok]
+            assert ratio.mean() == pytest.approx(1.0 + s, abs=2e-4), seed
+        scales.append(s)
+    assert len(set(scales)) == 3 and max(scales) - min(scales) > 1e-4
+    # Off: the true depth (to float32 rounding: the depth still goes through a disparity and back).
+    frame = floor_renderer.render(T_world_camera, CAMERA, ONLY_SHADOW, np.random.default_rng(1))
+    assert float(frame.truth["depth_scale_true"]) == 0.0
+    ok = true.depth > 0
+    assert np.array_equal(frame.depth > 0, ok)
+    assert np.abs(frame.depth[ok] / true.depth[ok] - 1.0).max() < 1e-6
+    with pytest.raises(ValueError, match="depth_scale_error"):
+        CameraNoise(depth_scale_error=0.06)
+
+
+def test_depth_scale_survives_a_generator_state_restore() -> None:
+    a = np.random.default_rng(5)
+    a.random(1000)  # a camera that has rendered for a while
+    b = np.random.default_rng(99)
+    b.bit_generator.state = a.bit_generator.state  # as a simulator snapshot restores it
+    assert depth_scale(a, 0.003) == depth_scale(b, 0.003) != depth_scale(np.random.default_rng(6), 0.003)
+    assert depth_scale(a, 0.0) == 0.0
