@@ -1,7 +1,12 @@
 """`palletpilot segment ...`: segmentation datasets, evaluation and timing (wired in by `executor.cli`).
 
-- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup]`: render
-  simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`);
+- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup] [--randomise]`:
+  render simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`; `--randomise`:
+  domain randomisation of colours, pallet types and light);
+- `palletpilot segment train DATA_DIR [DATA_DIR ...] [--init M.onnx] --out OUT.onnx [--steps N | --minutes M]
+  [--seed S] [--threads T] [--lr LR] [--heldout DIR]`: fine-tune a model (default: the shipped one) on
+  frame bundles and / or folders of labelled PNG frames (`perception.segmentation_data`), with
+  `perception.train_segmentation.train`; needs torch and onnx (`pip install '.[train]'`);
 - `palletpilot segment eval DATA_DIR [--model M.onnx] [--frames N] [--json]`: per-class IoU of the
   ONNX model on labelled bundles at full resolution (`perception.segmentation.evaluate_segmenter`);
 - `palletpilot segment time DATA_DIR [--model M.onnx] [--frames N] [--json]`: median, p95 and max
@@ -16,7 +21,7 @@ import argparse
 import json
 from pathlib import Path
 
-from palletpilot.executor.cli_args import count, out_folder, seed
+from palletpilot.executor.cli_args import count, number, out_file, out_folder, seed
 
 EXIT_OK = 0
 
@@ -33,8 +38,48 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
     """Render `--frames` simulator frames into OUT_DIR as `frame_%05d.npz`."""
     from palletpilot.sim.dataset import generate_dataset
 
-    paths = generate_dataset(args.out_dir, args.frames, seed=args.seed, start=args.start, mounts=args.mounts)
+    paths = generate_dataset(
+        args.out_dir, args.frames, seed=args.seed, start=args.start, mounts=args.mounts, randomise=args.randomise
+    )
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
+    return EXIT_OK
+
+
+def cmd_segment_train(args: argparse.Namespace) -> int:
+    """Fine-tune the `--init` model on the data folders and write `--out` (optionally evaluated on `--heldout`)."""
+    from palletpilot.perception.errors import PerceptionError
+    from palletpilot.perception.segmentation_data import check_training_inputs
+
+    try:
+        import onnx  # noqa: F401 (only checking that it is there)
+        import torch  # noqa: F401
+    except ImportError as exc:
+        raise PerceptionError(
+            f"palletpilot segment train needs torch and onnx ({exc.name} is missing): pip install '.[train]'"
+        ) from None
+    from palletpilot.perception.train_segmentation import FINETUNE_LR, train
+
+    check_training_inputs(args.data_dirs, args.init)
+    steps = args.steps if args.steps is not None or args.minutes is not None else 300
+    facts = train(
+        list(args.data_dirs),
+        Path(args.out),
+        seed=args.seed,
+        steps=steps,
+        minutes=args.minutes,
+        lr=args.lr if args.lr is not None else FINETUNE_LR,
+        threads=args.threads,
+        init=args.init,
+        log=not args.quiet,
+    )
+    print(f"wrote {args.out}: {facts['steps']} steps on {facts['frames']} frames in {facts['train_minutes']} min")
+    if args.heldout is not None:
+        from palletpilot.perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
+
+        files = sorted(args.heldout.glob("*.npz"))
+        if not files:
+            raise PerceptionError(f"{args.heldout}: no .npz frame bundles")
+        print(format_iou(evaluate_segmenter(OnnxSegmenter(Path(args.out)), files)))
     return EXIT_OK
 
 
@@ -71,7 +116,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     """Add the `segment` command and its subcommands to `palletpilot`'s subparsers."""
     from palletpilot.perception.segmentation import DEFAULT_MODEL
 
-    seg = subparsers.add_parser("segment", help="segmentation datasets, evaluation and timing")
+    seg = subparsers.add_parser("segment", help="segmentation datasets, training, evaluation and timing")
     seg_sub = seg.add_subparsers(dest="segment_command", required=True)
 
     ds = seg_sub.add_parser("dataset", help="render simulator frame bundles for training or evaluation")
@@ -85,7 +130,28 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         default="all",
         help="camera mounts: all (tilt 15-40 deg) or only those fit for the Pickup (calibrate's view check)",
     )
+    ds.add_argument(
+        "--randomise",
+        action="store_true",
+        help="domain randomisation: colours of floor, racks, pallets and loads, pallet types, light and exposure",
+    )
     ds.set_defaults(func=cmd_segment_dataset)
+
+    tr = seg_sub.add_parser("train", help="fine-tune the segmentation model on frame bundles or labelled PNG frames")
+    tr.add_argument(
+        "data_dirs", type=Path, nargs="+", help="folders of frame bundles (.npz) or of NAME.png + NAME_labels.png"
+    )
+    tr.add_argument("--init", type=Path, default=DEFAULT_MODEL, help="the ONNX model to start from (default: shipped)")
+    tr.add_argument("--out", type=out_file(".onnx"), required=True, help="the fine-tuned ONNX model to write")
+    length = tr.add_mutually_exclusive_group()
+    length.add_argument("--steps", type=count(1), default=None, help="optimiser steps of 12 crops (default 300)")
+    length.add_argument("--minutes", type=number(0.1, 10000.0), default=None, help="train for this wall time")
+    tr.add_argument("--seed", type=seed, default=0)
+    tr.add_argument("--threads", type=count(1), default=1, help="torch CPU threads")
+    tr.add_argument("--lr", type=number(1e-6, 1.0), default=None, help="peak learning rate (default 1e-3)")
+    tr.add_argument("--heldout", type=Path, default=None, help="evaluate the new model on these bundles")
+    tr.add_argument("--quiet", action="store_true", help="no progress lines")
+    tr.set_defaults(func=cmd_segment_train)
 
     for name, func, text in (
         ("eval", cmd_segment_eval, "per-class IoU of the ONNX model on labelled bundles"),

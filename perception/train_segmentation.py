@@ -7,8 +7,11 @@ Usage (torch and onnx come with the optional `train` extra; CPU is enough)::
         --seed 0 [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--crop 384 288] \
         [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--lr 4e-3] [--threads 2]
 
-The script only reads frame bundles (`perception.frames.load_bundle`, RGB plus labels); it never imports
-the simulator. Steps:
+`--init MODEL.onnx` fine-tunes an exported model instead of training from scratch (its weights and widths,
+`perception.segmentation_data.import_onnx_weights`; batch norms frozen; peak learning rate 1e-3 unless
+`--lr`); `palletpilot segment train` is the same with the fine-tuning defaults. A data folder holds frame
+bundles (`.npz`) or the user's own labelled PNG frames (`NAME.png` + `NAME_labels.png`, class ids, 255 =
+ignore; `perception.segmentation_data`). The script never imports the simulator. Steps:
 
 1. Cache: every bundle's RGB and labels at the network's full input size (640 x 480; other sizes are
    resized, area filter and nearest neighbour) go into `DATA_DIR/.segcache_640x480_{rgb,labels}.npy`
@@ -21,8 +24,9 @@ the simulator. Steps:
    with the pallet in the lower part of the crop so that what stands on it is in view; the rest lie
    anywhere. Loss: class-weighted cross-entropy (weights: pixel frequency ** -`--weight-power`,
    default 0.5, normalised and clipped to 0.5..10; the two pallet classes share one weight) plus
-   `--dice` (default 0.5) times a soft-Dice term; label 255 ignored. Augmentation: horizontal flips and
-   photometric jitter (brightness, contrast, per-channel gain, gamma, noise, blur). AdamW with a
+   `--dice` (default 0.5) times a soft-Dice term; label 255 ignored. Augmentation (`augment`): horizontal
+   flips and photometric effects drawn anew every step (brightness, contrast, white balance, gamma,
+   vignetting, Gaussian or motion blur, luminance and colour noise, JPEG re-encoding). AdamW with a
    warm-up plus cosine learning rate. Deterministic for `--seed`, `--steps`, the data and `--threads`
    (torch, numpy and the crop order are seeded; single process). `--minutes M` picks the step count
    from the measured speed and prints it, so that run is repeated with `--steps N`.
@@ -48,6 +52,14 @@ import cv2
 import numpy as np
 
 from palletpilot.perception.frames import SemanticClass, load_bundle
+from palletpilot.perception.segmentation_data import (
+    file_sha256,
+    freeze_batchnorm,
+    import_onnx_weights,
+    is_png_folder,
+    load_png_folder,
+    onnx_training_facts,
+)
 
 INPUT_WIDTH = 640
 INPUT_HEIGHT = 480
@@ -62,6 +74,8 @@ FOCUS_CLASSES = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL)
 """Crops placed around a pixel of one of these classes (`--focus` of them)."""
 CHANNELS = (16, 32, 48, 64, 96)
 """SegNet feature channels at 1/2, 1/4, 1/8, 1/16 and 1/32 of the input."""
+FINETUNE_LR = 1e-3
+"""Default peak learning rate when fine-tuning from an existing model (`--init`)."""
 
 
 # -- data ---------------------------------------------------------------------------------------
@@ -111,10 +125,17 @@ def load_cached(data_dir: Path, width: int = INPUT_WIDTH, height: int = INPUT_HE
 
 
 class Frames:
-    """The frames of several data folders as one indexable set (memory-mapped caches, see `load_cached`)."""
+    """The frames of several data folders as one indexable set.
+
+    A folder of frame bundles is read through its memory-mapped cache (`load_cached`); a folder of
+    labelled PNG frames (`perception.segmentation_data`: `NAME.png` + `NAME_labels.png`) is read into memory.
+    """
 
     def __init__(self, data_dirs: list[Path]) -> None:
-        self.parts = [load_cached(Path(d)) for d in data_dirs]
+        self.parts = [
+            load_png_folder(Path(d), INPUT_WIDTH, INPUT_HEIGHT) if is_png_folder(Path(d)) else load_cached(Path(d))
+            for d in data_dirs
+        ]
         self.offsets = np.cumsum([0] + [len(rgb) for rgb, _ in self.parts])
 
     def __len__(self) -> int:
@@ -171,19 +192,52 @@ def sample_crop(lab: np.ndarray, crop: tuple[int, int], focus: float, rng: np.ra
 
 
 def augment(rgb: np.ndarray, lab: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Flip and photometric jitter of one (H, W, 3) uint8 image and its (H, W) labels; returns float32 0..1 RGB."""
+    """Flip and photometric jitter of one (H, W, 3) uint8 image and its (H, W) labels; returns float32 0..1 RGB.
+
+    Every training step draws (labels are only flipped): brightness, per-channel gain (white balance),
+    contrast, gamma 0.7..1.45; vignetting (one time in three, up to 45 % darker corners, off-centre);
+    Gaussian blur (one in four) or motion blur (one in five, 3..11 px at any angle); sensor noise,
+    partly per channel (colour noise) and partly in low-frequency blotches; JPEG re-encoding at
+    quality 40..95 (`cv2.imencode`, one time in two) last, as a camera's compressed stream would.
+    """
     if rng.random() < 0.5:
         rgb, lab = rgb[:, ::-1], lab[:, ::-1]
     img: np.ndarray = rgb.astype(np.float32) / 255.0
-    if rng.random() < 0.3:
-        k = int(rng.choice([3, 5]))
-        img = cv2.GaussianBlur(img, (k, k), 0)
-    img = img * rng.uniform(0.6, 1.4) * rng.uniform(0.92, 1.08, 3).astype(np.float32)
+    h, w = img.shape[:2]
+    img = img * rng.uniform(0.6, 1.4) * rng.uniform(0.85, 1.15, 3).astype(np.float32)
     mean = img.mean()
-    img = (img - mean) * rng.uniform(0.75, 1.25) + mean
-    img = np.clip(img, 0.0, 1.0) ** rng.uniform(0.8, 1.25)
-    img = img + rng.normal(0.0, rng.uniform(0.0, 0.03), img.shape).astype(np.float32)
-    return np.clip(img, 0.0, 1.0).astype(np.float32), np.ascontiguousarray(lab)
+    img = (img - mean) * rng.uniform(0.7, 1.3) + mean
+    img = np.clip(img, 0.0, 1.0) ** rng.uniform(0.7, 1.45)
+    if rng.random() < 1.0 / 3.0:
+        cy, cx = h * rng.uniform(0.3, 0.7), w * rng.uniform(0.3, 0.7)
+        yy, xx = np.ogrid[:h, :w]
+        r2 = ((yy - cy) ** 2 + (xx - cx) ** 2) / float(0.25 * (h * h + w * w))
+        img = img * (1.0 - rng.uniform(0.1, 0.45) * np.minimum(r2, 1.5)).astype(np.float32)[..., None]
+    k = rng.random()
+    if k < 0.25:
+        size = int(rng.choice([3, 5]))
+        img = cv2.GaussianBlur(img, (size, size), 0)
+    elif k < 0.45:
+        length = int(rng.integers(3, 12))
+        line = np.zeros((length, length), np.float32)
+        line[length // 2, :] = 1.0 / length
+        rot = cv2.getRotationMatrix2D(((length - 1) / 2.0, (length - 1) / 2.0), float(rng.uniform(0.0, 180.0)), 1.0)
+        kernel: np.ndarray = cv2.warpAffine(line, rot, (length, length))
+        img = cv2.filter2D(img, -1, kernel / max(float(kernel.sum()), 1e-6))
+    sigma = rng.uniform(0.0, 0.04)
+    img = img + rng.normal(0.0, sigma, (h, w, 1)).astype(np.float32)
+    img = img + rng.normal(0.0, rng.uniform(0.0, 0.025), img.shape).astype(np.float32)
+    if rng.random() < 0.2:  # low-frequency colour blotches
+        low = rng.normal(0.0, rng.uniform(0.01, 0.04), (max(2, h // 32), max(2, w // 32), 3)).astype(np.float32)
+        img = img + cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
+    img = np.clip(img, 0.0, 1.0)
+    if rng.random() < 0.5:
+        quality = int(rng.integers(40, 96))
+        ok, buf = cv2.imencode(".jpg", (img * 255.0 + 0.5).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        decoded = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if ok else None
+        if decoded is not None:
+            img = decoded.astype(np.float32) / 255.0
+    return np.ascontiguousarray(img, np.float32), np.ascontiguousarray(lab)
 
 
 # -- model ----------------------------------------------------------------------------------------
@@ -315,6 +369,8 @@ def train(
     channels: tuple[int, ...] = CHANNELS,
     weight_power: float = 0.5,
     dice: float = 0.5,
+    init: Path | None = None,
+    log: bool = True,
 ) -> dict:
     """Train on the bundles in `data_dirs`, export the ONNX model to `out`; return the training facts.
 
@@ -322,6 +378,12 @@ def train(
     as many steps as fit that wall time: the time of steps 10..19 fixes the step count, printed and
     stored in the model metadata, so `--steps N` with the same seed and data repeats the run exactly
     (the learning-rate schedule depends only on N).
+
+    With `init` (an ONNX model written by `export_onnx`) the network starts from that model's weights
+    and widths (its `training.channels` metadata; `channels` is then ignored) and is fine-tuned: its
+    batch norms stay frozen (`segmentation_data.freeze_batchnorm`), the rest trains as above, and the
+    facts record the starting model (`init`: file name, SHA-256 and its own training facts).
+    `log=False` prints nothing (tests).
     """
     import torch
     from torch.nn import functional as F  # noqa: N812 (the usual torch alias)
@@ -331,17 +393,31 @@ def train(
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
     rng = np.random.default_rng(seed)
+
+    def say(text: str) -> None:
+        if log:
+            print(text, flush=True)
+
     frames = Frames(data_dirs)
     n = len(frames)
-    print(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}", flush=True)
+    say(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}")
     weights = torch.tensor(class_weights(frames.class_pixels(), weight_power), dtype=torch.float32)
-    print("class weights", np.round(weights.numpy(), 2).tolist(), flush=True)
+    say(f"class weights {np.round(weights.numpy(), 2).tolist()}")
     mean = torch.tensor(MEAN).view(1, 3, 1, 1)
     std = torch.tensor(STD).view(1, 3, 1, 1)
 
+    init_facts: dict | None = None
+    if init is not None:
+        previous = onnx_training_facts(init)
+        channels = tuple(int(c) for c in previous.get("channels", channels))
     model = build_model(channels)
+    if init is not None:
+        import_onnx_weights(model, init)
+        freeze_batchnorm(model)
+        init_facts = {"file": Path(init).name, "sha256": file_sha256(init), "training": previous}
+        say(f"fine-tuning {init} (batch norms frozen)")
     n_params = sum(p.numel() for p in model.parameters())
-    print(f"SegNet channels {list(channels)}: {n_params / 1e6:.3f} M parameters", flush=True)
+    say(f"SegNet channels {list(channels)}: {n_params / 1e6:.3f} M parameters")
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     total = steps if steps is not None else 10**9
     t0 = time.time()
@@ -380,12 +456,11 @@ def train(
         if minutes is not None and step == 20:
             per_step = (time.time() - t10) / 10
             total = max(40, int((60.0 * minutes - (time.time() - t0)) / per_step) + 20)
-            print(f"{per_step:.2f} s per step: training for {total} steps (--steps {total} repeats this run)")
+            say(f"{per_step:.2f} s per step: training for {total} steps (--steps {total} repeats this run)")
         if step % 50 == 0:
-            print(
+            say(
                 f"step {step}/{total} epoch {step * batch / n:.2f} loss {np.mean(running[-50:]):.4f} "
-                f"lr {learning_rate(step, total, lr):.2e} {(time.time() - t0) / 60:.1f} min",
-                flush=True,
+                f"lr {learning_rate(step, total, lr):.2e} {(time.time() - t0) / 60:.1f} min"
             )
     minutes_used = (time.time() - t0) / 60.0
     facts = {
@@ -402,12 +477,16 @@ def train(
         "dice": dice,
         "threads": threads,
         "train_minutes": round(minutes_used, 1),
+        "data": [Path(d).name for d in data_dirs],
     }
-    export_onnx(model, out, facts)
+    if init_facts is not None:
+        facts["fine_tuned"] = True
+        facts["init"] = init_facts
+    export_onnx(model, out, facts, log)
     return facts
 
 
-def export_onnx(model, out: Path, facts: dict) -> None:
+def export_onnx(model, out: Path, facts: dict, log: bool = True) -> None:
     """Export `model` (eval mode, 1 x 3 x H x W) to ONNX opset 17 with the metadata `OnnxSegmenter` reads.
 
     The graph has two outputs: `logits` (1, 10, H, W) float32 and `labels` (1, H, W) uint8, the argmax.
@@ -457,8 +536,10 @@ def export_onnx(model, out: Path, facts: dict) -> None:
         entry.key, entry.value = key, value
     proto.producer_name = "palletpilot.perception.train_segmentation"
     onnx.checker.check_model(proto)
-    onnx.save(proto, str(out))
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)", flush=True)
+    onnx.save(proto, str(tmp))
+    tmp.replace(out)  # atomic: a failed export leaves an older file as it was
+    if log:
+        print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -478,12 +559,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--channels", default=",".join(map(str, CHANNELS)), help="SegNet widths at 1/2 .. 1/32")
     ap.add_argument("--weight-power", type=float, default=0.5, help="class weights: frequency ** -power")
     ap.add_argument("--dice", type=float, default=0.5, help="weight of the soft-Dice loss term")
-    ap.add_argument("--lr", type=float, default=4e-3)
+    ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default 4e-3, 1e-3 with --init)")
+    ap.add_argument("--init", type=Path, default=None, help="fine-tune from the weights of this ONNX model")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     ap.add_argument("--heldout", type=Path, default=None, help="evaluate the exported model on these bundles")
     args = ap.parse_args(argv)
     steps = 1500 if args.steps is None and args.minutes is None else args.steps
     channels = tuple(int(c) for c in args.channels.split(","))
+    lr = args.lr if args.lr is not None else (FINETUNE_LR if args.init is not None else 4e-3)
     facts = train(
         args.data_dirs,
         args.out,
@@ -491,13 +574,14 @@ def main(argv: list[str] | None = None) -> int:
         steps,
         args.minutes,
         args.batch,
-        args.lr,
+        lr,
         args.threads,
         tuple(args.crop),
         args.focus,
         channels,
         args.weight_power,
         args.dice,
+        args.init,
     )
     print(json.dumps(facts), flush=True)
     if args.heldout is not None:

@@ -24,6 +24,29 @@ What varies per frame (all SI units, poses in the world frame unless said otherw
   intensity +-20 %, colour tint, ceiling-lamp phase); labels are exact (no label noise);
 - 0..4 clutter items (people and boxes of random size) beside or beyond the target, never on it.
 
+With `randomise=True` (`palletpilot segment dataset --randomise`; domain randomisation, for a model
+that has to work on a real camera) each frame also draws, from its own generator seeded with
+`(seed, index, 1)`, so that the poses, mounts and clutter drawn above stay those of the plain frame:
+
+- pallet types: every pallet is `eur`, `plastic` or `half` (`industrial` and `industrial_long`
+  1200 x 1000 pallets too on floor nodes, where they fit); loaded pallets are wrapped in stretch
+  film one time in three, and their load may overhang the entry face by up to 0.06 m;
+- colours (the per-triangle `albedo` of the built meshes, scaled per material so that the tone
+  differences between boards, uprights and beams stay): the floor (concrete from dark to pale,
+  painted epoxy grey / green / ochre), walls, rack uprights and beams (any of the common rack
+  colours), every pallet on its own (wood from pale to dark and weathered grey, painted blue or red,
+  plastic black / grey / blue), every load on its own (cartons brown or white, coloured bins, white
+  sacks, film from clear to black), boxes, people's clothes and the forks;
+- light: direction (elevation 20..85 deg, any azimuth), ambient and direct intensity, colour
+  temperature (warm sodium to cool LED), ceiling-lamp modulation, exposure (x0.5..1.7, saturating)
+  and RGB sensor noise 1..8 levels.
+
+Photometric effects that need no re-render (blur, motion blur, colour noise, gamma, JPEG, vignetting)
+are drawn per training step by `perception.train_segmentation.augment`.
+
+Scenarios the simulator refuses (a bigger pallet or a clutter item overlapping something) are drawn
+again from the same generator, so frame `i` still depends only on `(seed, i)` (and `randomise`).
+
 Simulator-only truth keys (`T_forklift_camera_true`, `T_forklift_pallet_true`) stay in the bundles.
 """
 
@@ -33,18 +56,20 @@ import math
 from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
-from palletpilot.perception.frames import FrameBundle, save_bundle
+from palletpilot.perception.frames import FrameBundle, SemanticClass, save_bundle
 from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import NodeType, load_map
-from palletpilot.sim.camera import d435_color_intrinsics
-from palletpilot.sim.scenario import CameraMount, Scenario
+from palletpilot.sim.camera import Lighting, RaycastRenderer, d435_color_intrinsics
+from palletpilot.sim.scenario import CameraMount, Scenario, SimError
 from palletpilot.sim.simulator import Simulator
+from palletpilot.sim.world import LabeledMesh, Texture
 
 MISSIONS_DIR = bundled_path("missions")
 """Folder of the example map, fork and vehicle files."""
@@ -56,6 +81,8 @@ MAX_LATERAL_M = 0.35
 MAX_YAW_DEG = 15.0
 _FAR_SHARE = 1.0 / 8.0
 _LOW_FORKS_AT_RACK_SHARE = 1.0 / 7.0
+_MAX_DRAWS = 50
+"""Scenario draws per frame before giving up (the simulator refuses overlapping placements)."""
 
 
 @lru_cache(maxsize=4)
@@ -109,12 +136,17 @@ def _suits_pickup(mount: dict[str, float], missions_dir: Path) -> bool:
 
 
 def random_scenario(
-    rng: np.random.Generator, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
+    rng: np.random.Generator,
+    missions_dir: Path = MISSIONS_DIR,
+    mounts: str = "all",
+    style: np.random.Generator | None = None,
 ) -> tuple[Scenario, SE2, float]:
     """A random scenario (see the module docstring) drawn from `rng`; `mounts`: "all" or "pickup".
 
-    Returns (scenario, `T_world_forklift` standing pose near the target's pre-pallet node, fork
-    height in m). The scenario starts at the pre-pallet node; `render_frame` moves the forklift.
+    With `style` (domain randomisation), pallet types, film, overhang and the RGB noise level are
+    drawn from it (the geometry drawn from `rng` is the same). Returns (scenario, `T_world_forklift`
+    standing pose near the target's pre-pallet node, fork height in m). The scenario starts at the
+    pre-pallet node; `render_frame` moves the forklift.
     """
     facts, tip_x = _map_facts(Path(missions_dir))
     target, height, T_world_pre = facts[int(rng.integers(len(facts)))]
@@ -148,6 +180,11 @@ def random_scenario(
         "rgb_sigma": float(rng.uniform(1.0, 4.0)),
         "lighting_variation": True,
     }
+    if style is not None:
+        heights = dict(nodes)
+        for pallet in pallets:
+            _style_pallet(pallet, heights[str(pallet["node"])] > 0.0, style)
+        noise["rgb_sigma"] = float(style.uniform(1.0, 8.0))
     pose = _standing_pose(rng, T_world_pre)
     clutter = _clutter(rng, pose, tip_x)
     if height > 0.0 and rng.random() >= _LOW_FORKS_AT_RACK_SHARE:
@@ -168,6 +205,22 @@ def random_scenario(
     )
     sc.folder = Path(missions_dir)
     return sc, pose, float(fork_height)
+
+
+FLOOR_TYPES = {"eur": 0.4, "plastic": 0.2, "half": 0.1, "industrial": 0.2, "industrial_long": 0.1}
+"""Pallet types and their shares at floor nodes with `randomise`."""
+RACK_TYPES = {"eur": 0.6, "plastic": 0.25, "half": 0.15}
+"""Pallet types and their shares at rack nodes (1200 x 1000 pallets do not fit the example racks)."""
+
+
+def _style_pallet(pallet: dict, at_rack: bool, style: np.random.Generator) -> None:
+    """Draw a randomised pallet's type, and for a loaded one stretch film and overhang, into its placement."""
+    types = RACK_TYPES if at_rack else FLOOR_TYPES
+    names = list(types)
+    pallet["type"] = names[int(style.choice(len(names), p=list(types.values())))]
+    if pallet["loaded"]:
+        pallet["film"] = bool(style.random() < 1.0 / 3.0)
+        pallet["overhang_m"] = float(style.uniform(0.0, 0.06)) if style.random() < 0.25 else 0.0
 
 
 def _standing_pose(rng: np.random.Generator, T_world_pre: SE2) -> SE2:
@@ -200,15 +253,28 @@ def _clutter(rng: np.random.Generator, T_world_forklift: SE2, tip_x: float) -> l
     return items
 
 
-def render_frame(index: int, seed: int, missions_dir: Path = MISSIONS_DIR, mounts: str = "all") -> FrameBundle:
+def render_frame(
+    index: int, seed: int, missions_dir: Path = MISSIONS_DIR, mounts: str = "all", randomise: bool = False
+) -> FrameBundle:
     """Frame `index` of the dataset with `seed`: a random scenario rendered with the `Simulator` (640x480).
 
-    Deterministic for `(seed, index, mounts)`. The bundle carries RGB, depth (m), exact labels, the
-    fork height (m) and the simulator's truth keys.
+    Deterministic for `(seed, index, mounts, randomise)`; `randomise`: domain randomisation (module
+    docstring). The bundle carries RGB, depth (m), exact labels, the fork height (m) and the
+    simulator's truth keys.
     """
     rng = np.random.default_rng([int(seed), int(index)])
-    sc, pose, fork_height = random_scenario(rng, missions_dir, mounts)
-    sim = Simulator(sc)
+    style = np.random.default_rng([int(seed), int(index), 1]) if randomise else None
+    for _attempt in range(_MAX_DRAWS):
+        sc, pose, fork_height = random_scenario(rng, missions_dir, mounts, style)
+        try:
+            sim = Simulator(sc)
+            break
+        except SimError:  # a pallet or clutter item overlapping something: draw the scene again
+            continue
+    else:
+        raise SimError(f"dataset frame {index} (seed {seed}): no valid scenario in {_MAX_DRAWS} draws")
+    if style is not None:
+        randomise_appearance(sim, style)
     sim.forklift.state.pose = pose  # teleport: a dataset frame needs no driving
     sim.forklift.state.fork_height = fork_height
     sim.forklift.fork_height_cmd = fork_height
@@ -216,15 +282,21 @@ def render_frame(index: int, seed: int, missions_dir: Path = MISSIONS_DIR, mount
 
 
 def iter_frames(
-    n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
+    n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all", randomise: bool = False
 ) -> Iterator[FrameBundle]:
     """Frames `start .. start + n - 1` of the dataset with `seed` (see `render_frame`)."""
     for i in range(start, start + n):
-        yield render_frame(i, seed, missions_dir, mounts)
+        yield render_frame(i, seed, missions_dir, mounts, randomise)
 
 
 def generate_dataset(
-    out_dir: str | Path, n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all"
+    out_dir: str | Path,
+    n: int,
+    seed: int,
+    start: int = 0,
+    missions_dir: Path = MISSIONS_DIR,
+    mounts: str = "all",
+    randomise: bool = False,
 ) -> list[Path]:
     """Render frames `start .. start + n - 1` for `seed` and save them as `out_dir/frame_%05d.npz`.
 
@@ -233,6 +305,202 @@ def generate_dataset(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts), start=start):
+    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts, randomise), start=start):
         paths.append(save_bundle(out / f"frame_{i:05d}.npz", bundle))
     return paths
+
+
+# -- domain randomisation: colours and light ------------------------------------------------------
+
+_FILM = np.array([0.80, 0.82, 0.84])
+_WALL = np.array([0.78, 0.77, 0.72])
+_RACK_COLOURS = np.array(
+    [
+        (0.10, 0.22, 0.55),  # blue
+        (0.85, 0.38, 0.08),  # orange
+        (0.55, 0.55, 0.55),  # galvanised
+        (0.80, 0.70, 0.10),  # yellow
+        (0.12, 0.40, 0.18),  # green
+        (0.60, 0.10, 0.08),  # red
+        (0.15, 0.15, 0.16),  # anthracite
+        (0.80, 0.80, 0.78),  # white
+    ]
+)
+
+
+def _tint(style: np.random.Generator, colour: np.ndarray | tuple, spread: float = 0.06) -> np.ndarray:
+    """`colour` with a per-channel tint of +-`spread` (relative)."""
+    return np.asarray(colour, float) * style.uniform(1.0 - spread, 1.0 + spread, 3)
+
+
+def _any_colour(style: np.random.Generator, sat: tuple[float, float] = (0.2, 0.9)) -> np.ndarray:
+    """A random colour: uniform hue, saturation in `sat`, value 0.05..0.85 (linear albedo)."""
+    h, sv, v = style.uniform(0.0, 6.0), style.uniform(*sat), style.uniform(0.05, 0.85)
+    rgb = np.clip(np.abs(((h + np.array([0.0, 4.0, 2.0])) % 6.0) - 3.0) - 1.0, 0.0, 1.0)
+    return v * (1.0 - sv + sv * rgb)
+
+
+def _floor_colour(style: np.random.Generator) -> tuple[np.ndarray, int | None]:
+    """Concrete from dark to pale, or painted epoxy (grey, green, ochre, blue-grey; plain texture)."""
+    if style.random() < 0.7:
+        return _tint(style, np.full(3, style.uniform(0.18, 0.75)), 0.05), None
+    epoxy = [(0.35, 0.37, 0.38), (0.15, 0.35, 0.20), (0.55, 0.45, 0.28), (0.25, 0.30, 0.38), (0.55, 0.55, 0.52)]
+    return _tint(style, epoxy[int(style.integers(len(epoxy)))]) * style.uniform(0.7, 1.3), int(Texture.PLAIN)
+
+
+def _wall_colour(style: np.random.Generator) -> np.ndarray:
+    """Light paint of any tint, grey cladding or brick."""
+    k = style.random()
+    if k < 0.6:
+        return _tint(style, np.full(3, style.uniform(0.45, 0.9)), 0.1)
+    if k < 0.85:
+        return _any_colour(style, (0.1, 0.5))
+    return _tint(style, (0.45, 0.20, 0.12)) * style.uniform(0.6, 1.3)
+
+
+def _pallet_colour(style: np.random.Generator, plastic: bool) -> tuple[np.ndarray, int | None]:
+    """A pallet's colour and texture: wood (pale to dark, weathered grey), painted blue / red, or plastic."""
+    if plastic or style.random() < 0.08:  # plastic (or a plastic-looking wooden one): plain black / grey / blue
+        k = style.random()
+        colour = (
+            np.full(3, style.uniform(0.02, 0.08))
+            if k < 0.4
+            else np.full(3, style.uniform(0.12, 0.5))
+            if k < 0.75
+            else _tint(style, (0.08, 0.18, 0.45), 0.25)
+        )
+        return colour, int(Texture.PLAIN)
+    k = style.random()
+    if k < 0.62:  # natural wood, pale to dark
+        lightness = style.uniform(0.45, 1.15)
+        return _tint(style, (0.72, 0.55, 0.34), 0.08) * lightness, None
+    if k < 0.82:  # weathered grey
+        return _tint(style, np.full(3, style.uniform(0.22, 0.55)) * (1.05, 1.0, 0.92), 0.05), None
+    painted = [(0.10, 0.25, 0.55), (0.10, 0.25, 0.55), (0.55, 0.12, 0.10), (0.12, 0.40, 0.18)]  # CHEP, LPR, ...
+    return _tint(style, painted[int(style.integers(len(painted)))], 0.15), None
+
+
+def _cargo_colour(style: np.random.Generator, film: bool) -> tuple[np.ndarray, int | None]:
+    """A load's colour and texture: stretch film (clear to black), cartons, coloured bins, sacks, dark crates."""
+    if film:
+        k = style.random()
+        if k < 0.7:
+            return _tint(style, np.full(3, style.uniform(0.55, 0.92)), 0.05), None
+        if k < 0.85:
+            return np.full(3, style.uniform(0.03, 0.12)), None
+        return _tint(style, (0.35, 0.5, 0.75), 0.2), None
+    k = style.random()
+    if k < 0.45:
+        return _tint(style, (0.62, 0.45, 0.28), 0.1) * style.uniform(0.6, 1.3), int(Texture.CARDBOARD)
+    if k < 0.6:
+        return _tint(style, np.full(3, style.uniform(0.6, 0.85)), 0.04), int(Texture.CARDBOARD)
+    if k < 0.8:
+        return _any_colour(style, (0.5, 1.0)), int(Texture.PAINTED_METAL)
+    if k < 0.9:
+        return _tint(style, (0.80, 0.76, 0.66), 0.08), int(Texture.FABRIC)
+    return np.full(3, style.uniform(0.04, 0.3)), int(Texture.PLAIN)
+
+
+def _recolour(mesh: LabeledMesh, rows: np.ndarray, colour: np.ndarray, texture: int | None) -> None:
+    """Give the triangles `rows` the mean colour `colour`, keeping their tone differences (in place)."""
+    if not rows.any():
+        return
+    mean = np.maximum(mesh.albedo[rows].mean(axis=0), 1e-3)
+    mesh.albedo[rows] = np.clip(mesh.albedo[rows] / mean * colour, 0.0, 1.0)
+    if texture is not None:
+        mesh.texture[rows] = texture
+
+
+def _copy(mesh: LabeledMesh) -> LabeledMesh:
+    """A copy whose albedo and texture may be changed without touching `mesh`."""
+    return LabeledMesh.merge([mesh, LabeledMesh.empty()])
+
+
+def _styled_world(mesh: LabeledMesh, style: np.random.Generator) -> LabeledMesh:
+    """The floor, walls, racks, boxes and people with random colours (per material)."""
+    out = _copy(mesh)
+    keys = np.column_stack([out.classes.astype(np.int32), np.round(out.albedo * 200).astype(np.int32)])
+    materials, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    floor_colour, floor_texture = _floor_colour(style)
+    for m, key in enumerate(materials):
+        rows = inverse == m
+        cls, albedo = int(key[0]), key[1:] / 200.0
+        texture: int | None = None
+        if cls == SemanticClass.DRIVABLE:
+            colour, texture = floor_colour, floor_texture
+        elif cls == SemanticClass.VERTICAL and np.allclose(albedo, _WALL, atol=0.02):
+            colour = _wall_colour(style)
+        elif cls == SemanticClass.VERTICAL:
+            colour = _tint(style, _RACK_COLOURS[int(style.integers(len(_RACK_COLOURS)))], 0.1)
+        elif cls == SemanticClass.OTHER_OBJECT:
+            colour = _any_colour(style)
+        elif cls == SemanticClass.PERSON:
+            colour = _any_colour(style) if style.random() < 0.7 else albedo * style.uniform(0.4, 1.3)
+        else:
+            continue
+        _recolour(out, rows, colour, texture)
+    return out
+
+
+def _styled_pallet(mesh: LabeledMesh, plastic: bool, style: np.random.Generator) -> LabeledMesh:
+    """One pallet and its load with random colours (the pallet as a whole, the load as a whole)."""
+    out = _copy(mesh)
+    pallet = (out.classes == SemanticClass.PALLET_EMPTY) | (out.classes == SemanticClass.PALLET_FULL)
+    _recolour(out, pallet, *_pallet_colour(style, plastic))
+    cargo = out.classes == SemanticClass.CARGO
+    film = cargo & np.all(np.abs(out.albedo - _FILM) < 0.02, axis=1)
+    _recolour(out, film, *_cargo_colour(style, True))
+    _recolour(out, cargo & ~film, *_cargo_colour(style, False))
+    return out
+
+
+def random_lighting(style: np.random.Generator) -> Lighting:
+    """A random light: direction, ambient and direct intensity, colour temperature, lamp rows and exposure."""
+    elevation, azimuth = np.radians(style.uniform(20.0, 85.0)), style.uniform(0.0, 2.0 * np.pi)
+    direction = (np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation))
+    ambient, diffuse = float(style.uniform(0.15, 0.6)), float(style.uniform(0.3, 1.0))
+    warm, cool = np.array([1.0, 0.80, 0.58]), np.array([0.86, 0.94, 1.0])
+    t = style.uniform(0.0, 1.0)
+    colour = (1.0 - t) * warm + t * cool
+    if style.random() < 0.1:
+        colour = colour * (0.9, 1.0, 0.85)  # fluorescent green cast
+    # Exposure: relative to the default light's brightness (0.4 + 0.7 * ~0.7), x0.5..1.7, saturating.
+    exposure = float(np.exp(style.uniform(np.log(0.5), np.log(1.7)))) * 0.9 / (ambient + 0.6 * diffuse)
+    colour = colour / colour.max() * exposure
+    return Lighting(
+        direction=(float(direction[0]), float(direction[1]), float(direction[2])),
+        ambient=ambient,
+        diffuse=diffuse,
+        colour=(float(colour[0]), float(colour[1]), float(colour[2])),
+        lamp_period_m=float(style.uniform(3.0, 9.0)),
+        lamp_depth=float(style.uniform(0.0, 0.35)),
+    )
+
+
+class _LitRenderer(RaycastRenderer):
+    """A `RaycastRenderer` whose frames use a given base lighting (the simulator passes none)."""
+
+    def __init__(self, static: LabeledMesh, lighting: Lighting) -> None:
+        super().__init__(static)
+        self.lighting = lighting
+
+    def render(self, *args: Any, **kwargs: Any) -> FrameBundle:
+        """`RaycastRenderer.render` with `lighting` defaulting to this renderer's."""
+        kwargs["lighting"] = kwargs.get("lighting") or self.lighting
+        return super().render(*args, **kwargs)
+
+
+def randomise_appearance(sim: Simulator, style: np.random.Generator) -> None:
+    """Recolour the built world, pallets, loads and forks of `sim` and give its renderer a random light.
+
+    Works on the simulator's meshes after it is built (the world's shape and labels are untouched).
+    """
+    world = _styled_world(sim._fixed_mesh, style)
+    pallets = [
+        _styled_pallet(sim._pallet_mesh(p), p.type.material == "plastic", style) for p in sim.pallets if not p.carried
+    ]
+    forks = _copy(sim._forks_local)
+    forks.albedo[:] = np.clip(forks.albedo * style.uniform(0.6, 2.5), 0.0, 1.0)
+    sim._forks_local = forks
+    sim._renderer = _LitRenderer(LabeledMesh.merge([world, *pallets]), random_lighting(style))

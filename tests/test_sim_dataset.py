@@ -54,3 +54,53 @@ def test_unknown_mount_set_is_refused():
 
     with pytest.raises(ValueError, match="mounts must be one of all, pickup"):
         random_scenario(np.random.default_rng(0), mounts="steep")
+
+
+def test_randomised_frames_are_deterministic_and_vary_the_look():
+    plain = render_frame(3, seed=5)
+    a = render_frame(3, seed=5, randomise=True)
+    b = render_frame(3, seed=5, randomise=True)
+    np.testing.assert_array_equal(a.rgb, b.rgb)  # still a function of (seed, index)
+    np.testing.assert_array_equal(a.labels, b.labels)
+    assert a.rgb is not None and plain.rgb is not None
+    assert np.abs(a.rgb.astype(int) - plain.rgb.astype(int)).mean() > 5.0  # other colours and light
+    same_geometry = a.labels == plain.labels  # the scene is the same apart from pallet types
+    assert same_geometry.mean() > 0.5
+
+
+def test_randomised_scenarios_draw_pallet_types_that_fit():
+    from palletpilot.sim.dataset import FLOOR_TYPES, RACK_TYPES, random_scenario
+
+    seen: dict[str, set[str]] = {"floor": set(), "rack": set()}
+    film = 0
+    for i in range(30):
+        rng, style = np.random.default_rng([2, i]), np.random.default_rng([2, i, 1])
+        sc, _, _ = random_scenario(rng, style=style)
+        for p in sc.pallets:
+            seen["rack" if p.node.startswith("rack") else "floor"].add(p.type)
+            film += int(p.film)
+    assert seen["rack"] <= set(RACK_TYPES) and seen["floor"] <= set(FLOOR_TYPES)
+    assert {"industrial", "plastic", "half"} <= seen["floor"] and "plastic" in seen["rack"]
+    assert film > 0
+
+
+def test_random_lighting_and_colours_change_the_look_not_the_labels():
+    from palletpilot.sim.dataset import random_lighting, random_scenario, randomise_appearance
+    from palletpilot.sim.simulator import Simulator
+
+    for i in range(20):
+        light = random_lighting(np.random.default_rng(i))
+        assert light.unit_direction()[2] > 0.3  # from above
+        assert 0.0 < max(light.colour) < 3.0 and 0.1 < light.ambient < 0.7
+    sc, pose, fork_height = random_scenario(np.random.default_rng([5, 7]))
+    frames = []
+    for styled in (False, True):
+        sim = Simulator(sc)
+        if styled:
+            randomise_appearance(sim, np.random.default_rng(4))
+        sim.forklift.state.pose = pose
+        sim.forklift.state.fork_height = fork_height
+        frames.append(sim.grab())
+    np.testing.assert_array_equal(frames[0].labels, frames[1].labels)
+    assert frames[0].rgb is not None and frames[1].rgb is not None
+    assert np.abs(frames[0].rgb.astype(int) - frames[1].rgb.astype(int)).mean() > 5.0

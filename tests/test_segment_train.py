@@ -1,0 +1,125 @@
+"""`palletpilot segment train`: fine-tuning the shipped model on a user's own labelled PNG frames."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from palletpilot.cli import main
+from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
+
+EXAMPLE = Path(__file__).parent / "data" / "seg_finetune"
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _run(argv: list[str]) -> int:
+    try:
+        return int(main(argv) or 0)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+def test_the_example_has_the_documented_format():
+    images = sorted(p for p in EXAMPLE.glob("*.png") if not p.name.endswith("_labels.png"))
+    assert len(images) >= 3
+    for image in images:
+        rgb = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+        lab = cv2.imread(str(image.with_name(f"{image.stem}_labels.png")), cv2.IMREAD_UNCHANGED)
+        assert rgb.shape == (480, 640, 3) and lab.shape == (480, 640) and lab.dtype == np.uint8
+        values = set(np.unique(lab).tolist())
+        assert values <= set(range(10)) | {255} and 255 in values and values & {7, 8}
+    assert sum(p.stat().st_size for p in EXAMPLE.iterdir()) < 400_000
+
+
+def test_two_step_fine_tune_writes_a_fine_tuned_model(tmp_path, capsys):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    before = _sha(DEFAULT_MODEL)
+    out = tmp_path / "tuned.onnx"
+    argv = ["segment", "train", str(EXAMPLE), "--out", str(out), "--steps", "2", "--threads", "1", "--quiet"]
+    assert _run(argv) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert _sha(DEFAULT_MODEL) == before  # the shipped model is never touched
+    seg = OnnxSegmenter(out)
+    labels = seg.segment(cv2.cvtColor(cv2.imread(str(EXAMPLE / "warehouse_00.png")), cv2.COLOR_BGR2RGB))
+    assert labels.shape == (480, 640) and labels.dtype == np.uint8
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(str(out)).metadata_props}
+    facts = json.loads(meta["training"])
+    assert facts["fine_tuned"] is True and facts["steps"] == 2 and facts["frames"] == 3
+    assert facts["init"]["sha256"] == before and facts["init"]["file"] == DEFAULT_MODEL.name
+    assert facts["data"] == ["seg_finetune"]
+
+
+def _copy_example(tmp_path: Path) -> Path:
+    folder = tmp_path / "frames"
+    shutil.copytree(EXAMPLE, folder)
+    return folder
+
+
+def _one_line_error(capsys, exit_code: int, *words: str) -> None:
+    err = capsys.readouterr().err.strip()
+    assert exit_code == 2
+    assert len(err.splitlines()) == 1, err
+    for word in words:
+        assert word in err
+
+
+def test_bad_label_values_are_one_line(tmp_path, capsys):
+    folder = _copy_example(tmp_path)
+    lab = cv2.imread(str(folder / "warehouse_01_labels.png"), cv2.IMREAD_UNCHANGED)
+    lab[10:20, 10:20] = 42
+    cv2.imwrite(str(folder / "warehouse_01_labels.png"), lab)
+    code = _run(["segment", "train", str(folder), "--out", str(tmp_path / "x.onnx"), "--steps", "1"])
+    _one_line_error(capsys, code, "warehouse_01_labels.png", "42", "255 (ignore)")
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_a_missing_pair_is_one_line(tmp_path, capsys):
+    folder = _copy_example(tmp_path)
+    (folder / "warehouse_02_labels.png").unlink()
+    code = _run(["segment", "train", str(folder), "--out", str(tmp_path / "x.onnx"), "--steps", "1"])
+    _one_line_error(capsys, code, "warehouse_02.png", "warehouse_02_labels.png")
+    folder2 = _copy_example(tmp_path / "b")
+    (folder2 / "warehouse_00.png").unlink()
+    code = _run(["segment", "train", str(folder2), "--out", str(tmp_path / "x.onnx"), "--steps", "1"])
+    _one_line_error(capsys, code, "warehouse_00_labels.png", "no image")
+
+
+def test_labels_of_another_size_are_one_line(tmp_path, capsys):
+    folder = _copy_example(tmp_path)
+    cv2.imwrite(str(folder / "warehouse_00_labels.png"), np.zeros((240, 320), np.uint8))
+    code = _run(["segment", "train", str(folder), "--out", str(tmp_path / "x.onnx"), "--steps", "1"])
+    _one_line_error(capsys, code, "320 x 240", "640 x 480")
+
+
+def test_a_model_of_another_architecture_is_refused(tmp_path, capsys):
+    pytest.importorskip("torch")
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("rgb", TensorProto.FLOAT, [1, 3, 480, 640])
+    y = helper.make_tensor_value_info("logits", TensorProto.FLOAT, [1, 10, 480, 640])
+    w = helper.make_tensor("w", TensorProto.FLOAT, [10, 3, 1, 1], np.zeros(30, np.float32).tolist())
+    graph = helper.make_graph([helper.make_node("Conv", ["rgb", "w"], ["logits"])], "tiny", [x], [y], [w])
+    other = tmp_path / "other.onnx"
+    onnx.save(helper.make_model(graph), str(other))
+    code = _run(["segment", "train", str(EXAMPLE), "--init", str(other), "--out", str(tmp_path / "x.onnx")])
+    _one_line_error(capsys, code, "other.onnx", "another architecture")
+
+
+def test_without_torch_names_the_train_extra(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch", None)  # import torch now raises ImportError
+    code = _run(["segment", "train", str(EXAMPLE), "--out", str(tmp_path / "x.onnx")])
+    _one_line_error(capsys, code, "pip install '.[train]'")
