@@ -5,8 +5,9 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.palletpilot-installed
 OUT    ?= out
-# Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp.
-SYSTEM_LIBS := libusb-1.0-0 libgomp1
+# Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp; the VDA 5050 tests start a
+# mosquitto MQTT broker.
+SYSTEM_LIBS := libusb-1.0-0 libgomp1 mosquitto
 
 .PHONY: demo test lint setup system-libs clean
 

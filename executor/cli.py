@@ -402,6 +402,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_perception",
         "palletpilot.executor.cli_segmentation",
         "palletpilot.executor.cli_test",
+        "palletpilot.executor.vda5050.cli_agv",
     ):
         importlib.import_module(module).add_parsers(sub)
     for extend in extensions:

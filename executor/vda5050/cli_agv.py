@@ -1,0 +1,103 @@
+"""`palletpilot agv`: run as one AGV of a fleet, orders from a VDA 5050 master over MQTT (wired in by `executor.cli`).
+
+`palletpilot agv --config agv.yaml (--sim SCENARIO | --robot robot.yaml) [--labels model|truth] [--seed N]
+[--quiet]` checks the config file (and the map, vehicle, TLS files it names) and the scenario first: a problem
+is one line on stderr and exit 2. Then it connects to the broker (retrying with backoff until it gets through),
+prints one line on stdout, `agv ready: <interface>/v2/<manufacturer>/<serial>/ (simulated scenario ...)`, and
+runs until SIGINT or SIGTERM: the truck stops, `connection` goes OFFLINE, and it exits 0. Progress (connection,
+orders accepted or rejected, legs, failures) goes to stderr unless `--quiet`.
+
+`--sim SCENARIO` drives the simulated warehouse of a scenario in real time (its map must be the config's);
+`--robot robot.yaml` needs the ROS 2 adapter (`palletpilot.executor.ros`) and says so when it is missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from importlib import metadata
+from types import FrameType
+
+from palletpilot.executor.cli_args import seed
+
+
+def _version() -> str:
+    try:
+        return metadata.version("palletpilot")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def cmd_agv(args: argparse.Namespace) -> int:
+    """Check the inputs, connect, drive until SIGINT / SIGTERM, then go OFFLINE."""
+    from palletpilot.executor.vda5050.agv import Agv
+    from palletpilot.executor.vda5050.config import load_config
+    from palletpilot.executor.vda5050.vehicle import robot_backend, sim_backend
+
+    stop = threading.Event()
+    agv: Agv | None = None
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        stop.set()
+        if agv is not None:
+            agv.stop()
+
+    # first thing: a signal while the inputs load or the simulator builds ends the command cleanly
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        loaded = load_config(args.config)
+        if args.sim:
+            backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed)
+        else:
+            backend = robot_backend(loaded, args.robot)
+    except BaseException:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        raise
+
+    def log(line: str) -> None:
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
+
+    agv = Agv(loaded, backend, log=log, software_version=_version())
+    link = agv.connect()
+    if stop.is_set():
+        agv.stop()
+    publisher = threading.Thread(target=agv.publisher, args=(stop,), name="vda5050-publisher", daemon=True)
+    try:
+        publisher.start()
+        link.start()
+        where = f"simulated scenario {args.sim}" if args.sim else f"robot {args.robot}"
+        print(f"agv ready: {loaded.config.topic_prefix}/ ({where})", flush=True)
+        agv.run()
+    finally:
+        stop.set()
+        agv.stop()
+        publisher.join(timeout=2.0)
+        agv.publish_state()
+        link.close()
+        backend.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    log("agv: stopped (connection OFFLINE)")
+    return 0
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    """Register `agv` on the `palletpilot` sub-command parser."""
+    p = subparsers.add_parser("agv", help="run as a VDA 5050 AGV: orders from a fleet manager over MQTT")
+    p.add_argument("--config", required=True, metavar="AGV.yaml", help="broker, identity, map and rates (agv.yaml)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--sim", metavar="SCENARIO", help="drive the simulated warehouse of a scenario in real time")
+    where.add_argument("--robot", metavar="ROBOT.yaml", help="drive a real truck (needs the ROS 2 adapter)")
+    p.add_argument(
+        "--labels",
+        choices=("model", "truth"),
+        default="model",
+        help="--sim: perception segments the RGB with the shipped model (default) or takes the simulator's labels",
+    )
+    p.add_argument("--seed", type=seed, help="--sim: override the scenario's seed")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=cmd_agv)
