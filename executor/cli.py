@@ -22,6 +22,8 @@ Commands:
 - `palletpilot perception serve [--camera realsense|none] [--model M.onnx] [--forks F] [--pallet P]
   [--listen ENDPOINT] [--connect ENDPOINT] [--prefix KEY]` (`executor.cli_perception`)
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
+- `palletpilot robot MISSION --robot robot.yaml [...]`, `palletpilot sim serve SCENARIO --ros [--robot robot.yaml]`
+  (`executor.ros.cli_robot`)
 - `palletpilot bench NAME [--json] [bench options]` is added by `palletpilot.cli` (see `bench/`)
 """
 
@@ -39,6 +41,7 @@ from pathlib import Path
 
 from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
 from palletpilot.executor.cli_perception import endpoint
+from palletpilot.executor.ros.cli_robot import static_tf_dest
 from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
@@ -181,6 +184,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"warning: camera mount: {problem}", file=sys.stderr)
     for warning in calibration.warnings:  # e.g. fork tips that cannot be trusted (`perception.calibration`)
         print(f"warning: calibration: {warning}", file=sys.stderr)
+    if args.ros_static_tf is not None:  # base_link -> camera_color_optical_frame for ROS users
+        from palletpilot.executor.ros.cli_robot import emit_static_tf
+
+        emit_static_tf(calibration, args.ros_static_tf, json_out=args.json)
     return EXIT_OK
 
 
@@ -380,6 +387,14 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     )
     cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
     cal.add_argument("--pallet", default="eur", help="pallet type for the pickup view check: eur or a YAML file")
+    cal.add_argument(
+        "--ros-static-tf",
+        nargs="?",
+        const="-",
+        type=static_tf_dest,
+        metavar="FILE.yaml",
+        help="also print (or write to FILE.yaml) the base_link -> camera_color_optical_frame static transform",
+    )
     cal.set_defaults(func=cmd_calibrate)
 
     sim = sub.add_parser("sim", help="the simulated warehouse")
@@ -393,6 +408,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     render.add_argument("--at", help="node to stand at (default: the scenario's start)")
     render.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     render.set_defaults(func=cmd_sim_render)
+    importlib.import_module("palletpilot.executor.ros.cli_robot").add_sim_serve(sim_sub)  # sim serve --ros
 
     # Commands defined next to the code they drive.
     for module in (
@@ -400,6 +416,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
         "palletpilot.executor.cli_perception",
+        "palletpilot.executor.ros.cli_robot",
         "palletpilot.executor.cli_segmentation",
         "palletpilot.executor.cli_test",
         "palletpilot.executor.vda5050.cli_agv",
