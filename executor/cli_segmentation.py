@@ -50,6 +50,7 @@ def cmd_segment_train(args: argparse.Namespace) -> int:
     from palletpilot.perception.errors import PerceptionError
     from palletpilot.perception.segmentation_data import check_training_inputs
 
+    check_training_inputs(args.data_dirs, args.init)  # bad data is reported first, with or without torch
     try:
         import onnx  # noqa: F401 (only checking that it is there)
         import torch  # noqa: F401
@@ -59,7 +60,6 @@ def cmd_segment_train(args: argparse.Namespace) -> int:
         ) from None
     from palletpilot.perception.train_segmentation import FINETUNE_LR, train
 
-    check_training_inputs(args.data_dirs, args.init)
     steps = args.steps if args.steps is not None or args.minutes is not None else 300
     facts = train(
         list(args.data_dirs),
