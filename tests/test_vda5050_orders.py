@@ -509,15 +509,15 @@ def test_bad_config_is_one_line_per_problem(tmp_path: Path, monkeypatch: pytest.
     assert len(run.stderr.strip().splitlines()) == len(lines)
 
 
-def test_robot_mode_needs_the_ros_adapter() -> None:
+def test_robot_mode_checks_the_robot_file() -> None:
     run = subprocess.run(
         [sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(MISSIONS / "agv.yaml"), "--robot", "r.yaml"],
         capture_output=True,
         text=True,
         timeout=120,
     )
-    assert run.returncode == 2, run.stderr
-    assert "ROS 2 adapter" in run.stderr and "Traceback" not in run.stderr
+    assert run.returncode == 2, run.stderr  # through the ROS 2 adapter, which reads the robot file first
+    assert "r.yaml: cannot read" in run.stderr and "Traceback" not in run.stderr
 
 
 def test_outgoing_messages_are_schema_valid(manager: OrderManager, world: tuple[Any, Any]) -> None:
