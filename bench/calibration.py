@@ -18,6 +18,14 @@ Fork families (`--families`; the simulator renders the true blades, calibration 
 - `taper_measured`: the same blades with their profile in the forks file (`forks measure`);
 - `taper_bottom`: blades whose bottom face slopes up (top flat to the tip), nominal box in the file.
 Per family and method: successes, failures, untrusted tips (warnings), and error statistics.
+
+Depth tare (`--tare`): the simulated D435 has a depth scale error (+-0.3 %, fixed per camera), which no
+frame of the forks and the floor reveals: it moves the camera back by the error times the fork-tip
+distance. With `--tare both` (the default) every pose is calibrated twice: as it is (`model`, `paper`)
+and after the camera's depth tare (`model+tare`, `paper+tare`): the same camera renders a flat wall
+2.0-3.0 m ahead, turned up to 5 deg, whose distance a laser distance meter gives to +-1.5 mm
+(uniform), `perception.depth_tare` measures the scale error from it, and the fork frame's depth is
+corrected before calibrating (what `palletpilot camera tare` and `--depth-tare` do on a truck).
 """
 
 from __future__ import annotations
@@ -33,16 +41,22 @@ import numpy as np
 from palletpilot.executor.cli_args import count, names, out_folder, seed
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path, write_atomic
-from palletpilot.perception.calibration import METHODS, CalibrationError, calibrate
+from palletpilot.perception.calibration import METHODS, CalibrationError, Method, calibrate
 from palletpilot.perception.calibration_io import mount_angles
+from palletpilot.perception.depth_tare import DepthTare, correct_depth, measure_depth_tare
+from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry, load_forks
-from palletpilot.sim.camera import D435_COLOR_VFOV_DEG
+from palletpilot.sim.camera import D435_COLOR_VFOV_DEG, RaycastRenderer
 from palletpilot.sim.scenario import Scenario
 from palletpilot.sim.simulator import Simulator
+from palletpilot.sim.world import wall_mesh
 
 MISSIONS = bundled_path("missions")
 PLACES = ("c_w", "j_charge", "j_drop", "b1", "a2", "t_e")  # open floor ahead of the forks
 FAMILIES = ("box", "taper_nominal", "taper_measured", "taper_bottom")
+TARE_MODES = ("none", "laser", "both")
+LASER_ERROR_M = 0.0015
+"""Accuracy of the laser distance meter that measures the tare wall's distance (uniform +-)."""
 AXES = ("err_x_mm", "err_y_mm", "err_z_mm", "err_tilt_deg", "err_pan_deg", "err_roll_deg")
 
 
@@ -51,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--poses", type=count(1), default=40, help="poses per family")
     parser.add_argument("--seed", type=seed, default=0)
     parser.add_argument("--families", type=names(FAMILIES), default=list(FAMILIES), help="comma-separated subset")
+    parser.add_argument(
+        "--tare", choices=TARE_MODES, default="both", help="calibrate without (none) or after (laser) a depth tare"
+    )
     parser.add_argument(
         "--out", type=out_folder, default="out/bench_calibration", help="folder for the CSV and the plots"
     )
@@ -91,6 +108,17 @@ def _scenario(rng: np.random.Generator, tip_x: float, thickness: float) -> tuple
     return sc, redrawn
 
 
+def _tare(sim: Simulator, rng: np.random.Generator) -> DepthTare:
+    """The depth tare of the simulator's camera: a wall 2-3 m ahead, its distance measured to +-1.5 mm."""
+    distance = float(rng.uniform(2.0, 3.0))
+    wall = RaycastRenderer(wall_mesh((distance + 0.1, -4.0), (distance + 0.1, 4.0), height=6.0, thickness=0.2))
+    look = SE3.from_matrix(np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.0], [0, 0, 0, 1]], dtype=float))
+    turn = SE3.from_xyz_rpy((0.0, 0.0, 0.0), np.radians(rng.uniform(-5.0, 5.0, 3)))  # the camera a little off square
+    frame = wall.render(look @ turn, sim.camera, sim.scenario.camera.noise, sim._cam_rng)
+    measured = distance + float(rng.uniform(-LASER_ERROR_M, LASER_ERROR_M))
+    return measure_depth_tare([frame], measured)
+
+
 def _errors(T_est: SE3, T_true: SE3) -> list[float]:
     dt = (T_est.t - T_true.t) * 1e3
     da = np.degrees(np.array(mount_angles(T_est)) - np.array(mount_angles(T_true)))
@@ -121,6 +149,8 @@ def run(args: argparse.Namespace) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
+    tare_rows: list[dict] = []
+    tare_rng = np.random.default_rng([args.seed, 1])  # its own stream: the same poses with or without the tare
     redrawn_total = 0
     families = list(getattr(args, "families", FAMILIES))
     for family in families:
@@ -133,26 +163,22 @@ def run(args: argparse.Namespace) -> dict:
             sc.forks = str(blades.resolve())
             sim = Simulator(sc)
             frame = sim.grab()
-            for method in METHODS:
-                mount = {f"mount_{k}": v for k, v in sc.camera.mount.model_dump().items()}
-                row: dict = {"family": family, "pose": i, "method": method, "start": sc.start, **mount}
-                row.update({"taper_length": true.taper_length, "tip_thickness": true.tip_thickness or true.thickness})
-                t0 = time.perf_counter()
-                try:
-                    calib = calibrate([frame], in_file, method)
-                    row["runtime_ms"] = (time.perf_counter() - t0) * 1e3
-                    errors = _errors(calib.T_forklift_camera, sim.T_forklift_camera_true)
-                    row.update(dict(zip(AXES, errors, strict=True)))
-                    row["tip_trusted"] = bool(calib.quality.get("tip_trusted", True))
-                    row["beyond_tip_points"] = calib.quality.get("beyond_tip_points", 0)
-                    row["error"] = ""
-                except CalibrationError as exc:
-                    row["runtime_ms"] = (time.perf_counter() - t0) * 1e3
-                    row.update(dict.fromkeys(AXES, math.nan))
-                    row["tip_trusted"] = False
-                    row["beyond_tip_points"] = 0
-                    row["error"] = str(exc)
-                rows.append(row)
+            tare: DepthTare | None = None
+            if args.tare != "none":
+                tare = _tare(sim, tare_rng)
+                tare_rows.append({"true": float(frame.truth["depth_scale_true"]), "est": tare.depth_scale_error})
+            variants = [("", frame)] if args.tare != "laser" else []
+            if tare is not None:
+                variants.append(("+tare", correct_depth(frame, tare)))
+            for suffix, seen in variants:
+                for method in METHODS:
+                    row = _calibrate_one(seen, in_file, method, sim)
+                    row.update({"family": family, "pose": i, "method": method + suffix, "start": sc.start})
+                    row.update({f"mount_{k}": v for k, v in sc.camera.mount.model_dump().items()})
+                    row.update(
+                        {"taper_length": true.taper_length, "tip_thickness": true.tip_thickness or true.thickness}
+                    )
+                    rows.append(row)
 
     with (out / "calibration.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -160,14 +186,43 @@ def run(args: argparse.Namespace) -> dict:
         writer.writerows(rows)
 
     result: dict = {"poses_per_family": args.poses, "seed": args.seed, "mounts_redrawn_tips_out_of_view": redrawn_total}
+    if tare_rows:
+        err = np.array([(r["est"] - r["true"]) * 100.0 for r in tare_rows])
+        result["depth_tare"] = {
+            "cameras": len(tare_rows),
+            "scale_error_true_pct_max_abs": round(max(abs(r["true"]) * 100.0 for r in tare_rows), 3),
+            "scale_error_residual_pct_p95_abs": round(float(np.percentile(np.abs(err), 95)), 4),
+            "scale_error_residual_pct_max_abs": round(float(np.max(np.abs(err))), 4),
+        }
+    methods = sorted({r["method"] for r in rows}, key=lambda m: (m.endswith("+tare"), m != "model"))
     for family in families:
         result[family] = {
-            method: _stats([r for r in rows if r["family"] == family and r["method"] == method]) for method in METHODS
+            method: _stats([r for r in rows if r["family"] == family and r["method"] == method]) for method in methods
         }
     _plot(rows, out)
     result["csv"] = str(out / "calibration.csv")
     result["plots"] = [str(out / "translation_errors.png"), str(out / "rotation_errors.png")]
     return result
+
+
+def _calibrate_one(frame: FrameBundle, forks: ForkGeometry, method: Method, sim: Simulator) -> dict:
+    """One calibration's result row: errors per axis against the simulator's truth, or the error message."""
+    row: dict = {}
+    t0 = time.perf_counter()
+    try:
+        calib = calibrate([frame], forks, method)
+        row["runtime_ms"] = (time.perf_counter() - t0) * 1e3
+        row.update(dict(zip(AXES, _errors(calib.T_forklift_camera, sim.T_forklift_camera_true), strict=True)))
+        row["tip_trusted"] = bool(calib.quality.get("tip_trusted", True))
+        row["beyond_tip_points"] = calib.quality.get("beyond_tip_points", 0)
+        row["error"] = ""
+    except CalibrationError as exc:
+        row["runtime_ms"] = (time.perf_counter() - t0) * 1e3
+        row.update(dict.fromkeys(AXES, math.nan))
+        row["tip_trusted"] = False
+        row["beyond_tip_points"] = 0
+        row["error"] = str(exc)
+    return row
 
 
 def _stats(mine: list[dict]) -> dict:
@@ -204,7 +259,7 @@ def _plot(rows: list[dict], out: Path) -> None:
     for axes, unit, name in ((AXES[:3], "mm", "translation_errors.png"), (AXES[3:], "deg", "rotation_errors.png")):
         fig, panels = plt.subplots(len(axes), 1, figsize=(10, 8), sharex=True, dpi=110)
         for panel, axis in zip(panels, axes, strict=True):
-            for method, marker in (("paper", "x"), ("model", "o")):
+            for method, marker in (("paper", "x"), ("model", "o"), ("model+tare", ".")):
                 mine = [r for r in rows if r["method"] == method]
                 panel.plot(range(len(mine)), [r[axis] for r in mine], marker, ms=3, label=method)
             panel.axhline(0.0, color="k", lw=0.5)

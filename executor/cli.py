@@ -148,6 +148,7 @@ def _labelled(frames: list, model: str | None) -> list:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate T_forklift_camera from frame bundles of the forks and the floor."""
     from palletpilot.perception.calibration import calibrate
+    from palletpilot.perception.depth_tare import correct_depth, load_tare
     from palletpilot.perception.frames import load_bundles
     from palletpilot.perception.specs import load_forks, pallet_type
     from palletpilot.perception.view import pickup_view
@@ -156,9 +157,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     forks = collect(problems, lambda: load_forks(args.forks))
     pallet = collect(problems, lambda: pallet_type(args.pallet))
     loaded = collect(problems, lambda: load_bundles(args.frames, need_labels=True))
+    tare = collect(problems, lambda: load_tare(args.depth_tare)) if args.depth_tare else None
     raise_problems(problems)
     assert forks is not None and pallet is not None and loaded is not None
-    frames = _labelled(loaded, args.model)
+    frames = _labelled([correct_depth(f, tare) for f in loaded], args.model)
     calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
     h, w = frames[0].depth.shape
     view = pickup_view(calibration.T_forklift_camera, frames[0].K, (w, h), forks, pallet)
@@ -388,6 +390,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
     cal.add_argument("--pallet", default="eur", help="pallet type for the pickup view check: eur or a YAML file")
     cal.add_argument(
+        "--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`), applied first"
+    )
+    cal.add_argument(
         "--ros-static-tf",
         nargs="?",
         const="-",
@@ -412,6 +417,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
 
     # Commands defined next to the code they drive.
     for module in (
+        "palletpilot.executor.cli_camera",
         "palletpilot.executor.cli_capture",
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",

@@ -48,6 +48,7 @@ def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
 def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     """Check every input, then estimate the pallet pose in one frame bundle and print it."""
     from palletpilot.perception.calibration_io import load_calibration
+    from palletpilot.perception.depth_tare import correct_depth, load_tare
     from palletpilot.perception.frames import load_bundle
     from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
 
@@ -62,10 +63,11 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     frame = collect(problems, lambda: load_bundle(args.frame, mast_range_m, need_labels=True))
     calibration = collect(problems, lambda: load_calibration(args.calibration))
     pallet = collect(problems, lambda: pallet_type(args.pallet))
+    tare = collect(problems, lambda: load_tare(args.depth_tare)) if args.depth_tare else None
     raise_problems(problems, PerceptionError)
     assert frame is not None and calibration is not None and pallet is not None
 
-    frame = _with_labels(frame, args.frame)
+    frame = _with_labels(correct_depth(frame, tare), args.frame)
     try:
         estimate = estimate_pallet(frame, calibration, pallet)
     except PalletNotFound as exc:  # name the frame in the one-line message
@@ -96,4 +98,5 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="vehicle file: the frame's fork height must lie within its mast's range (default: any mast's, 0..20 m)",
     )
     p.add_argument("--json", action="store_true", help="print T_forklift_pallet, x_m, y_m, z_m, yaw_deg, spread")
+    p.add_argument("--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`)")
     p.set_defaults(func=cmd_estimate_pallet)

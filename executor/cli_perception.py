@@ -104,6 +104,7 @@ def _build(args: argparse.Namespace) -> PerceptionServer:
     from palletpilot.executor.perception_server import PerceptionServer
     from palletpilot.executor.ports import LocalPerception
     from palletpilot.geometry.fileio import bundled_path
+    from palletpilot.perception.depth_tare import load_tare
     from palletpilot.perception.errors import PerceptionError
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.perception.specs import load_forks, pallet_type
@@ -112,6 +113,7 @@ def _build(args: argparse.Namespace) -> PerceptionServer:
     forks = collect(problems, lambda: load_forks(args.forks or bundled_path("missions", "forks.yaml")))
     pallet = collect(problems, lambda: pallet_type(args.pallet))
     segmenter = collect(problems, lambda: OnnxSegmenter(args.model or DEFAULT_MODEL))
+    tare = collect(problems, lambda: load_tare(args.depth_tare)) if args.depth_tare else None
     raise_problems(problems, PerceptionError)
     assert forks is not None and pallet is not None and segmenter is not None
     camera, serial = None, None
@@ -120,7 +122,7 @@ def _build(args: argparse.Namespace) -> PerceptionServer:
 
         source = RealSenseSource()
         camera, serial = source, source.serial
-    perception = LocalPerception(forks, pallet, segmenter=segmenter)
+    perception = LocalPerception(forks, pallet, segmenter=segmenter, depth_tare=tare)
     return PerceptionServer(perception, prefix=args.prefix, camera=camera, camera_serial=serial)
 
 
@@ -136,6 +138,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="the service's own camera for requests without a frame (default none: requests carry frames)",
     )
     s.add_argument("--model", metavar="M.onnx", help="segmentation model (default: the shipped one)")
+    s.add_argument("--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`)")
     s.add_argument("--forks", metavar="FORKS.yaml", help="fork geometry (default: the bundled missions/forks.yaml)")
     s.add_argument("--pallet", default="eur", help="default pallet type: eur, another built-in or a YAML file")
     s.add_argument(

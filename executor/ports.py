@@ -16,6 +16,7 @@ from palletpilot.geometry import SE2
 from palletpilot.perception.calibration import Calibrator, Method
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.clearance import Volume, VolumeCheck, check_volume
+from palletpilot.perception.depth_tare import DepthTare, correct_depth
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate, estimate_pallet
 from palletpilot.perception.segmentation import SegmentationService
@@ -101,7 +102,11 @@ class PerceptionService(Protocol):
 
 
 class LocalPerception:
-    """`PerceptionService` in this process: labels from the frame or a segmenter, then the geometry."""
+    """`PerceptionService` in this process: labels from the frame or a segmenter, then the geometry.
+
+    `depth_tare`: the camera's measured depth scale error (`perception.depth_tare`), removed from every
+    frame before use; none for a camera without one (the simulator's, unless a scenario says otherwise).
+    """
 
     def __init__(
         self,
@@ -109,13 +114,16 @@ class LocalPerception:
         pallet: PalletType | None = None,
         method: Method = "model",
         segmenter: SegmentationService | None = None,
+        depth_tare: DepthTare | None = None,
     ) -> None:
         self.forks = forks
         self.pallet = pallet or PalletType.eur()
         self.calibrator = Calibrator(forks, method)
         self.segmenter = segmenter
+        self.depth_tare = depth_tare
 
     def _labelled(self, frame: FrameBundle) -> FrameBundle:
+        frame = correct_depth(frame, self.depth_tare)
         if frame.labels is not None or self.segmenter is None:
             return frame
         from palletpilot.perception.segmentation import ensure_labels
@@ -148,7 +156,7 @@ class LocalPerception:
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
         """Depth points inside `volume` (forklift frame) and the share of it the camera saw."""
-        return check_volume(frame, calibration, volume)
+        return check_volume(correct_depth(frame, self.depth_tare), calibration, volume)
 
     @property
     def last_good(self) -> Calibration | None:
