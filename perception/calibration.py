@@ -18,8 +18,10 @@ weak tip features, height deviations, an assumed zero roll):
     boxes: tops, inner and outer sides), and the tip edges lie at `tip_x`;
   - the tips come from geometry, not from label boundaries: scanning the depth image along each
     fork, a tip edge sits between the last pixel on the fork-top plane and the first pixel that sees
-    beyond it (the floor). The midpoint of that interval has no quantisation bias; pixels at depth
-    edges (mixed, flying) count as unknown and widen the interval instead of biasing it;
+    beyond it (the floor). The midpoint of that interval has no quantisation bias; pixels that are
+    neither count as unknown and widen the interval instead of biasing it; once the tips are trusted,
+    a last round counts a pixel at a depth jump (mixed, flying) as fork only on the blade's top face,
+    so mixed pixels on both sides of the edge widen it alike;
   - points at depth discontinuities are left out of the surface fits, labelled points that sit on
     the wrong surface (fork labels bled onto the floor) are dropped by geometry, and a soft-L1 loss
     absorbs the rest;
@@ -204,7 +206,9 @@ class _Edges:
     side_sign: np.ndarray  # (M,) +1 left fork (y > 0), -1 right fork
 
 
-def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, full_x: float, tip_window: float = 0.04) -> _Edges:
+def _edge_rays(
+    data: _FrameData, T: SE3, forks: ForkGeometry, full_x: float, tip_window: float = 0.04, settled: bool = False
+) -> _Edges:
     """Rays through the forks' depth edges against the floor, found by scanning the depth image.
 
     A fork ends where the camera starts to see beyond it (the floor, lower): at the tips, scanning up
@@ -244,6 +248,18 @@ def _edge_rays(data: _FrameData, T: SE3, forks: ForkGeometry, full_x: float, tip
     near_forks &= (q[:, 0] > forks.heel_x) & (q[:, 0] < forks.tip_x + tip_window + margin)
     near_forks &= q[:, 2] < forks.thickness + forks.heel_radius + margin
     fg = above & near_forks
+    if settled:  # `T` is close: a pixel at a depth jump counts as fork only on the blade's top face
+        # Stereo gives mixed depths at a depth jump, on both sides of it. One between the floor and the
+        # blade is neither: it is unknown on either side alike, so the edge interval keeps its midpoint.
+        # (Counting it as fork wherever it is above the floor moves the tips ~half a pixel away on
+        # average, as the floor test is a narrow band and "above the floor" a wide one.)
+        at_jump = data.edge[rows, cols]
+        tol_h = np.abs(along_up) * tol  # the depth tolerance as height
+        tol_x = np.abs(rays @ R[0]) * tol  # and along the blade
+        on_top = np.abs(q[:, 2] - forks.top_z(np.clip(q[:, 0], forks.heel_x, forks.tip_x))) < tol_h
+        on_top &= q[:, 0] < forks.tip_x + tip_window + tol_x
+        fg &= on_top | ~at_jump
+        above &= fg | ~at_jump
     # Codes: 0 unknown (also everywhere off the band), 1 on a fork, 2 floor, 3 something else above the floor.
     code = np.zeros(shape, np.int8)
     code[rows, cols] = np.where(fg, 1, np.where(beyond, 2, np.where(above, 3, 0)))
@@ -364,19 +380,18 @@ def _model_fit(
     floors = [subsample(fd.floor, 1500) for fd in data]
     lifts = [fd.frame.fork_height for fd in data]
     full_x = forks.taper_start_x - 0.01 if forks.tapered and forks.taper_side == "top" else forks.tip_x
-    T = T0
-    stats: dict = {}
-    fork_sets: list[np.ndarray] = []
-    edge_sets: list[_Edges] = []
-    for round_ in range(2):
+
+    def fit_round(T: SE3, first: bool, settled: bool) -> tuple[SE3, list[np.ndarray], list[_Edges], dict]:
+        """One robust fit of all six degrees of freedom to the evidence found under the estimate `T`."""
         # Evidence against the current estimate: forks near the model, tips from the depth image.
-        fork_sets, edge_sets = [], []
+        fork_sets: list[np.ndarray] = []
+        edge_sets: list[_Edges] = []
         for fd in data:
             q = T.apply(fd.forks)
-            keep = _fork_distance(q, forks) < (0.03 if round_ == 0 else 0.01)
+            keep = _fork_distance(q, forks) < (0.03 if first else 0.01)
             keep &= q[:, 0] > forks.heel_x + forks.heel_radius + 0.01
             fork_sets.append(subsample(fd.forks[keep], 2000))
-            edge_sets.append(_edge_rays(fd, T, forks, full_x, tip_window=0.3 if round_ == 0 else 0.03))
+            edge_sets.append(_edge_rays(fd, T, forks, full_x, 0.3 if first else 0.03, settled))
         n_tips = sum(len(e.tips) for e in edge_sets)
         n_sides = sum(len(e.sides) for e in edge_sets)
         if n_tips < limits.min_tip_edges:
@@ -408,7 +423,37 @@ def _model_fit(
             "side_edges": n_sides,
             "evaluations": int(sol.nfev),
         }
+        return T, fork_sets, edge_sets, stats
 
+    T, _, _, _ = fit_round(T0, True, False)
+    T, fork_sets, edge_sets, stats = fit_round(T, False, False)
+    quality, warnings = _quality(data, floors, lifts, fork_sets, edge_sets, T, forks, limits, where, stats)
+    if not quality.get("tip_trusted", True):
+        return T, quality, warnings
+    # The tips are where the forks file says: once more with the mixed pixels at depth jumps set apart.
+    try:
+        T2, fork_sets, edge_sets, stats = fit_round(T, False, True)
+        quality2, warnings2 = _quality(data, floors, lifts, fork_sets, edge_sets, T2, forks, limits, where, stats)
+    except CalibrationError:  # too few edges left, or residuals above the limits: keep the fit as it was
+        return T, quality, warnings
+    if not quality2.get("tip_trusted", True):
+        return T, quality, warnings
+    return T2, quality2, warnings2
+
+
+def _quality(
+    data: Sequence[_FrameData],
+    floors: list[np.ndarray],
+    lifts: list[float],
+    fork_sets: list[np.ndarray],
+    edge_sets: list[_Edges],
+    T: SE3,
+    forks: ForkGeometry,
+    limits: Limits,
+    where: str,
+    stats: dict,
+) -> tuple[dict, list[str]]:
+    """The fit's quality figures and warnings; residuals above the limits raise `CalibrationError`."""
     floor_res = np.concatenate([T.apply(f)[:, 2] + lift for f, lift in zip(floors, lifts, strict=True)])
     fork_res = np.concatenate([_fork_distance(T.apply(f), forks) for f in fork_sets])
     tip_res = np.concatenate([_tip_offsets(e.tips, T, forks)[0] for e in edge_sets])
@@ -436,7 +481,7 @@ def _model_fit(
             )
     warnings: list[str] = []
     quality.update(_tip_check(data, edge_sets, T, forks, limits, warnings))
-    return T, quality, warnings
+    return quality, warnings
 
 
 def _tip_check(
