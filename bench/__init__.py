@@ -14,4 +14,5 @@ BENCHMARKS: dict[str, str] = {
     "missions": "palletpilot.bench.missions",
     "faults": "palletpilot.bench.faults",
     "safety": "palletpilot.bench.safety",
+    "perception_service": "palletpilot.bench.perception_service",
 }
