@@ -15,4 +15,5 @@ BENCHMARKS: dict[str, str] = {
     "faults": "palletpilot.bench.faults",
     "safety": "palletpilot.bench.safety",
     "perception_service": "palletpilot.bench.perception_service",
+    "recording": "palletpilot.bench.recording",
 }

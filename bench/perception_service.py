@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> dict:
     from palletpilot.perception.specs import PalletType, load_forks
     from palletpilot.perception.view import PICKUP_AHEAD_M
 
-    spec = frame_specs(1, args.seed, 0.3, 0.05, 10.0, tuple(PICKUP_AHEAD_M))[0]
+    spec = frame_specs(1, args.seed, 0.3, 0.05, 10.0, (PICKUP_AHEAD_M[0], PICKUP_AHEAD_M[1]))[0]
     frame, _ = render(spec)
     calibration = Calibration(SE3.from_matrix(frame.truth["T_forklift_camera_true"]), "true")
     pallet = PalletType.eur()

@@ -33,6 +33,7 @@ from palletpilot.executor.controls import Controls
 from palletpilot.executor.journal import Journal, JournalError
 from palletpilot.executor.mission import Mission, MissionError, load_mission, validate_mission
 from palletpilot.executor.ports import LocalPerception
+from palletpilot.executor.recording import SimFeed, start_recording
 from palletpilot.executor.report import REPORT_FILES, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
@@ -124,6 +125,9 @@ def run_simulated(
     labels: Labels = "model",
     perception: PerceptionMode = "local",
     perception_connect: Sequence[str] = (),
+    foxglove: int | None = None,
+    record: bool = True,
+    foxglove_host: str = "127.0.0.1",
 ) -> SimRun:
     """Validate and run a mission in the simulator; write the report when `report_dir` is given.
 
@@ -134,6 +138,9 @@ def run_simulated(
     truck) or `truth` (the simulator's exact labels, with its label noise; for comparison).
     `perception`: `local` (in this process), `remote` (the `palletpilot perception serve` service at
     `perception_connect`) or `serve-local` (a service started for the run; `executor.perception_remote`).
+    `foxglove`: also serve the run live over Foxglove WebSocket on `foxglove_host` at this port
+    (`executor.recording`; a port that cannot be served raises `RecordingError` before the run). The
+    report folder gets `run.mcap` unless `record` is False.
     """
     mission, roadmap, vehicle, sim, scenario = _load_run(mission_path, scenario_path, scenario, seed)
     folder = Path(report_dir).resolve() if report_dir is not None else None
@@ -175,6 +182,9 @@ def run_simulated(
         labels=labels,
         perception_mode=perception,
         perception_connect=perception_connect,
+        foxglove_port=foxglove,
+        record=record,
+        foxglove_host=foxglove_host,
     )
 
 
@@ -312,6 +322,9 @@ def _execute(
     labels: Labels = "model",
     perception_mode: PerceptionMode = "local",
     perception_connect: Sequence[str] = (),
+    foxglove_port: int | None = None,
+    record: bool = True,
+    foxglove_host: str = "127.0.0.1",
 ) -> SimRun:
     settings = settings or Settings()
     settings.adapt = adapt
@@ -320,17 +333,31 @@ def _execute(
         injector.skip_until(point.t)
         injector.skip_states(point.started_states())
     perception, grab = None, injector.grab
-    if adapt:
-        segmenter = None
-        if labels == "model":  # the truck's view: RGB through the shipped model, no labels from the simulator
-            segmenter = OnnxSegmenter(DEFAULT_MODEL) if perception_mode == "local" else None  # else the service's
-            grab = _without_labels(injector.grab)
-        if perception_mode == "local":
-            perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
+    recorder = start_recording(
+        folder if record else None, foxglove_port, clock_kind == "wall", point is not None, foxglove_host
+    )
+    if recorder is not None and recorder.port is not None and progress is not None:
+        progress.write(f"foxglove: live on ws://{foxglove_host}:{recorder.port}\n")
+    try:
+        if adapt:
+            segmenter = None
+            if labels == "model":  # the truck's view: RGB through the shipped model, no labels from the simulator
+                segmenter = OnnxSegmenter(DEFAULT_MODEL) if perception_mode == "local" else None  # else the service's
+                grab = _without_labels(injector.grab)
+            if recorder is not None and segmenter is not None:  # run.mcap: the labels perception segmented
+                segmenter = recorder.wrap_segmenter(segmenter)
+            if perception_mode == "local":
+                perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
+    except BaseException:
+        if recorder is not None:  # the file finished, the port freed
+            recorder.close()
+        raise
 
     log: TrajectoryLog | None = None
 
     def step(dt: float) -> None:
+        if recorder is not None:
+            recorder.tick()  # the state the runner saw this tick, before the world moves on
         sim.step(dt)
         injector.poll(sim.time)
         if log is not None:
@@ -346,6 +373,9 @@ def _execute(
     follower.step_fault = injector.step_failure
     write_errors: list[str] = []
     with contextlib.ExitStack() as stack:
+        if recorder is not None:
+            stack.callback(recorder.close)
+            grab = recorder.wrap_grab(grab)
         if adapt and perception_mode != "local":  # the service is stopped when the run ends, however it ends
             from palletpilot.executor.perception_remote import remote_perception
 
@@ -380,16 +410,22 @@ def _execute(
             resume=point,
             listeners=[injector.observe],
         )
+        if recorder is not None:
+            recorder.attach(runner, SimFeed(sim))
         if point is None:
             runner._log("run_start", run_id=run_id, seed=sim.seed, clock=clock_kind)
         if on_start is not None:
             on_start(runner)
         success = runner.run()
+        if recorder is not None:
+            recorder.finish(success, _extra(sim, clock, adapt, run_id, point, injector, runner))
         if book is not None:
             try:
                 book.finish(success, None if success else _first_reason(runner))
             except JournalError as exc:
                 write_errors.append(str(exc))
+    if recorder is not None:
+        write_errors += recorder.errors
     report = None
     if folder is not None:
         try:
@@ -434,20 +470,33 @@ def _write(
         runner.ctx.planned_paths,
         truth_pallets=[(p.T_world_pallet).to_se2() for p in sim.pallets],
         obstacles=sim.obstacle_outlines(),
-        extra={
-            "run_id": run_id,
-            "seed": sim.seed,
-            "adapt": adapt,
-            "simulated_s": round(sim.time, 2),
-            "resumed": 0 if point is None else point.resumes,
-            "clock": clock.stats(),
-            "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
-            "collisions": sim.collisions,
-            "stops": runner.stops,
-            "faults_injected": injector.injected,
-            "pallets": sim.pallet_records(),
-        },
+        extra=_extra(sim, clock, adapt, run_id, point, injector, runner),
     )
+
+
+def _extra(
+    sim: Simulator,
+    clock: Clock,
+    adapt: bool,
+    run_id: str,
+    point: ResumePoint | None,
+    injector: FaultInjector,
+    runner: Runner,
+) -> dict[str, Any]:
+    """The run's figures in report.json besides the tasks (also in run.mcap's `/report/run`)."""
+    return {
+        "run_id": run_id,
+        "seed": sim.seed,
+        "adapt": adapt,
+        "simulated_s": round(sim.time, 2),
+        "resumed": 0 if point is None else point.resumes,
+        "clock": clock.stats(),
+        "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
+        "collisions": sim.collisions,
+        "stops": runner.stops,
+        "faults_injected": injector.injected,
+        "pallets": sim.pallet_records(),
+    }
 
 
 def _solve_ms(solve_s: list[float]) -> dict[str, float | None]:

@@ -11,7 +11,8 @@ Commands:
 - `palletpilot map show MAP --out PNG [--route FROM TO]`
 - `palletpilot plan MAP FROM TO [--json]`
 - `palletpilot run MISSION.yaml [--scenario S.yaml] [--seed N] [--report DIR] [--no-adapt] [--json]
-  [--clock sim|wall] [--journal FILE] [--perception local|remote|serve-local] [--perception-connect ENDPOINT]`,
+  [--clock sim|wall] [--journal FILE] [--perception local|remote|serve-local] [--perception-connect ENDPOINT]
+  [--foxglove [PORT]] [--foxglove-host HOST]` (the report folder gets `run.mcap`, `executor.recording`),
   `palletpilot run --demo`, `palletpilot run --resume JOURNAL`;
   `palletpilot mission diagram TASK [--out FILE]`; `palletpilot examples [--out DIR]`
 - `palletpilot calibrate FRAME.npz [FRAME.npz ...] --forks FORKS.yaml [--method model|paper] [--json] [--out F]
@@ -24,6 +25,8 @@ Commands:
 - `palletpilot sim render SCENARIO --out FRAME.npz [--fork-height H] [--at NODE] [--seed N]`
 - `palletpilot robot MISSION --robot robot.yaml [...]`, `palletpilot sim serve SCENARIO --ros [--robot robot.yaml]`
   (`executor.ros.cli_robot`)
+- `palletpilot replay RUN.mcap --report DIR [--json]`: report.json and trajectory.png from a recording
+  (`executor.cli_replay`)
 - `palletpilot bench NAME [--json] [bench options]` is added by `palletpilot.cli` (see `bench/`)
 """
 
@@ -41,6 +44,7 @@ from pathlib import Path
 
 from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
 from palletpilot.executor.cli_perception import endpoint
+from palletpilot.executor.recording_channels import add_foxglove_argument
 from palletpilot.executor.ros.cli_robot import static_tf_dest
 from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
@@ -202,6 +206,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.perception_connect and args.perception != "remote":
         print("run: --perception-connect names the service of --perception remote; give both", file=sys.stderr)
         return EXIT_BAD_INPUT
+    if args.resume and args.foxglove is not None:
+        print("run: --foxglove shows a new run; give no --resume with it", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if args.resume and args.perception != "local":
         print("run: --resume continues with perception in process; give no --perception with it", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -235,6 +242,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             labels=args.labels,
             perception=args.perception,
             perception_connect=args.perception_connect or [],
+            foxglove=args.foxglove,
+            foxglove_host=args.foxglove_host,
         )
     report = result.report.parent if result.report is not None else None
     if args.json:
@@ -263,8 +272,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_examples(args: argparse.Namespace) -> int:
     """List the bundled example files (map, vehicle, forks, scenarios, missions), or copy them to --out."""
     folder = bundled_path("missions")
-    # the example files and the example test suite (`suite/`, whose files refer to `../`)
-    names = sorted(str(p.relative_to(folder)) for p in [*folder.glob("*.yaml"), *folder.glob("suite/*.yaml")])
+    # the example files, the example test suite (`suite/`, whose files refer to `../`) and the Foxglove layout
+    found = [*folder.glob("*.yaml"), *folder.glob("suite/*.yaml"), *folder.glob("foxglove/*.json")]
+    names = sorted(str(p.relative_to(folder)) for p in found)
     if not args.out:
         print(f"{folder}:")
         for name in names:
@@ -366,6 +376,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "--journal", metavar="FILE", type=out_file(), help="record the progress in this SQLite file (for --resume)"
     )
     run.add_argument("--resume", metavar="FILE", help="continue the interrupted run of this journal")
+    add_foxglove_argument(run)
     run.set_defaults(func=cmd_run)
 
     examples = sub.add_parser("examples", help="the bundled example files: list them, or copy them to edit")
@@ -422,6 +433,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
         "palletpilot.executor.cli_perception",
+        "palletpilot.executor.cli_replay",
         "palletpilot.executor.ros.cli_robot",
         "palletpilot.executor.cli_segmentation",
         "palletpilot.executor.cli_test",

@@ -1,5 +1,5 @@
 """Mission reports: `report.json`, `trajectory.png`, `events.jsonl` (and `trajectory.csv`, see
-`executor.trajectory_log`) in a report folder.
+`executor.trajectory_log`; `run.mcap`, the run's recording, see `executor.recording`) in a report folder.
 
 `report.json`: the mission, `success`, and per task its type, node, result, reason, attempts, start and
 end time (simulated s), its states with their times and outcomes, the calibrations, the pallet
@@ -31,7 +31,7 @@ from palletpilot.perception.specs import PalletType
 from palletpilot.roadmap import Roadmap
 from palletpilot.roadmap.draw import draw_roadmap
 
-REPORT_FILES = ("report.json", "trajectory.png", "events.jsonl", "trajectory.csv")
+REPORT_FILES = ("report.json", "trajectory.png", "events.jsonl", "trajectory.csv", "run.mcap", "run-resumed.mcap")
 """The files a run writes into its report folder (a new run removes them first)."""
 
 
