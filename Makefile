@@ -6,7 +6,8 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.palletpilot-installed
 OUT    ?= out
 # Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp; the VDA 5050 tests start a
-# mosquitto MQTT broker.
+# mosquitto MQTT broker, and the independent VDA 5050 master (tests/vda_master) needs node and npm (checked by
+# command, not package: a NodeSource nodejs brings its own npm).
 SYSTEM_LIBS := libusb-1.0-0 libgomp1 mosquitto
 
 .PHONY: demo test lint setup system-libs clean
@@ -34,6 +35,9 @@ system-libs:
 	done; \
 	if ! $(PYTHON) -c "import ensurepip, venv" >/dev/null 2>&1; then \
 	  missing="$$missing python3-venv"; \
+	fi; \
+	if ! command -v node >/dev/null || ! command -v npm >/dev/null; then \
+	  missing="$$missing nodejs npm"; \
 	fi; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \

@@ -289,6 +289,7 @@ def test_a_2_0_0_master_order_is_accepted(agv: Any, master: Master) -> None:
     master.send_order("o-v200", ["b1"])
     s = master.wait("the 2.0.0 order", lambda d: d["orderId"] == "o-v200", 10)
     assert s["lastNodeId"] == "b1" and s["nodeStates"] == [] and s["errors"] == []
+    assert s["version"] == "2.0.0"  # answered in the master's version (a 2.0 master refuses 2.1.0 headers)
     master.send_order("o-bad", ["nowhere"])
     s = master.wait("noRouteError", lambda d: any(e["errorType"] == "noRouteError" for e in d["errors"]), 10)
     error = next(e for e in s["errors"] if e["errorType"] == "noRouteError")

@@ -216,10 +216,24 @@ class Agv:
             self.orders.malformed(name, why or "unreadable")
             self.log(f"agv: {name}: {why}")
         elif name == "order":
+            self._follow_version(doc)
             self._order(doc)
         elif name == "instantActions":
+            self._follow_version(doc)
             self._instant(doc)
         self.changed()
+
+    def _follow_version(self, doc: dict[str, Any]) -> None:
+        """Answer in the master's 2.x minor version: a 2.0 master refuses states headed 2.1.0, and the
+        messages this AGV sends are valid in both (2.1 only adds optional fields)."""
+        version = doc.get("version")
+        if not isinstance(version, str):
+            return
+        minor = ".".join(version.split(".")[:2])
+        wanted = {"2.0": "2.0.0", "2.1": "2.1.0"}.get(minor)
+        if wanted is not None and wanted != self.messages.headers.version:
+            self.log(f"agv: the master speaks VDA 5050 {version}: answering in {wanted}")
+            self.messages.headers.version = wanted
 
     def view(self) -> VehicleView:
         """The truck as the acceptance flow sees it."""
