@@ -135,6 +135,12 @@ def test_pickup_and_delivery_over_ros2(tmp_path: Path, dds_env: dict[str, str]) 
         assert doc["clock"]["clock"] == "wall" and doc["clock"]["ticks"] > 100
         assert doc["drive_commands_sent"] >= doc["clock"]["ticks"]  # one per tick at least: the truck never timed out
         assert journal.is_file()
+        # the run's recording, from the truck's own readings: replay gives the same tasks and the same clock
+        from palletpilot.executor.replay import replay
+
+        replayed = json.loads(replay(report / "run.mcap", tmp_path / "replayed").read_text())
+        assert [t["result"] for t in replayed["tasks"]] == ["succeeded", "succeeded"]
+        assert replayed["robot"] == "truck" and replayed["clock"]["ticks"] == doc["clock"]["ticks"]
 
 
 def test_robot_killed_mid_drive_truck_brakes(tmp_path: Path, dds_env: dict[str, str]) -> None:

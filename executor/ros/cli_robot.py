@@ -28,6 +28,7 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 from palletpilot.executor.cli_args import number, out_file, out_folder, seed
+from palletpilot.executor.recording_channels import add_foxglove_argument
 from palletpilot.geometry import PalletpilotError
 from palletpilot.geometry.fileio import bundled_path, write_atomic
 
@@ -128,6 +129,8 @@ def cmd_robot(args: argparse.Namespace) -> int:
         progress=progress,
         controls=CONTROLS,
         on_ready=ready,
+        foxglove=args.foxglove,
+        foxglove_host=args.foxglove_host,
     )
     if args.json:
         print(json.dumps(result.summary, indent=2))
@@ -180,6 +183,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no live progress")
+    add_foxglove_argument(p)
     p.set_defaults(func=cmd_robot)
 
 

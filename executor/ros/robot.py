@@ -39,6 +39,7 @@ from palletpilot.executor.controls import Controls
 from palletpilot.executor.journal import Journal
 from palletpilot.executor.mission import Mission, load_mission, validate_mission
 from palletpilot.executor.ports import LocalPerception, PerceptionService
+from palletpilot.executor.recording import Recorder, start_recording
 from palletpilot.executor.report import REPORT_FILES, summary, write_report
 from palletpilot.executor.resume import Checkpointer
 from palletpilot.executor.ros.config import RobotConfig, load_robot
@@ -180,8 +181,13 @@ def run_robot(
     controls: Controls | None = None,
     settings: Settings | None = None,
     on_ready: Callable[[str], None] | None = None,
+    foxglove: int | None = None,
+    foxglove_host: str = "127.0.0.1",
 ) -> RobotRun:
-    """Check, connect, refuse or run (module docstring); `RobotError` for every reason not to start."""
+    """Check, connect, refuse or run (module docstring); `RobotError` for every reason not to start.
+
+    The report folder gets `run.mcap` (`executor.recording`); `foxglove`: also serve the run live over
+    Foxglove WebSocket on `foxglove_host:foxglove` (a port that cannot be served: `RecordingError`)."""
     from palletpilot.executor.ros.camera import RealSenseCamera, RosCamera
     from palletpilot.executor.ros.transport import open_transport
     from palletpilot.executor.ros.vehicle import RosVehicle
@@ -211,7 +217,7 @@ def run_robot(
             on_ready(node)
         return _execute(
             inputs, vehicle, camera, node, stack, mission_path, robot_path, report_dir, journal, perception_mode,
-            perception_connect, adapt, progress, controls, settings,
+            perception_connect, adapt, progress, controls, settings, (foxglove, foxglove_host),
         )  # fmt: skip
 
 
@@ -231,8 +237,9 @@ def _execute(
     progress: TextIO | None,
     controls: Controls | None,
     settings: Settings | None,
+    live: tuple[int | None, str] = (None, "127.0.0.1"),
 ) -> RobotRun:
-    """Build the runner on the connected truck and run the mission; write the report."""
+    """Build the runner on the connected truck and run the mission; write the report and `run.mcap`."""
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.perception.specs import PalletType
 
@@ -264,12 +271,19 @@ def _execute(
         frame: FrameBundle = camera.grab()
         return frame
 
-    clock = WallClock(dt=config.control_dt, step=vehicle.tick)
+    folder = Path(report_dir).resolve() if report_dir is not None else None
+    recorder: Recorder | None = None  # started once the report folder is clean
+
+    def step(dt: float) -> None:
+        if recorder is not None:
+            recorder.tick()  # the state the runner saw this tick
+        vehicle.tick(dt)
+
+    clock = WallClock(dt=config.control_dt, step=step)
     vehicle.now = clock.now
     if camera is not None:
         camera.now = clock.now
     follower = MpcFollower(inputs.params, MpcConfig())
-    folder = Path(report_dir).resolve() if report_dir is not None else None
     run_id = uuid.uuid4().hex
     book = None
     if journal is not None:
@@ -297,6 +311,12 @@ def _execute(
             events = stack.enter_context((folder / "events.jsonl").open("w"))
         except OSError as exc:
             raise OutputError(f"{folder}: cannot write the report: {exc.strerror or exc}") from None
+    recorder = start_recording(folder, live[0], wall=True, host=live[1])  # RecordingError: a port in use
+    if recorder is not None:
+        stack.callback(recorder.close)
+        grab = recorder.wrap_grab(grab)
+        if isinstance(perception, LocalPerception) and perception.segmenter is not None:
+            perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
     runner = Runner(
         mission,
         inputs.roadmap,
@@ -314,6 +334,8 @@ def _execute(
         controls=controls,
         checkpointer=Checkpointer(book) if book is not None else None,
     )
+    if recorder is not None:
+        recorder.attach(runner)
     runner._log("run_start", run_id=run_id, robot=config.name, clock="wall", start=node)
     success = runner.run()
     write_errors: list[str] = []
@@ -322,6 +344,20 @@ def _execute(
             book.finish(success, next((r.reason for r in runner.results if r.reason), None))
         except PalletpilotError as exc:
             write_errors.append(str(exc))
+    extra = {
+        "run_id": run_id,
+        "robot": config.name,
+        "start": node,
+        "adapt": adapt,
+        "clock": clock.stats(),
+        "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
+        "stops": runner.stops,
+        "drive_commands_sent": vehicle.commands_sent,
+    }
+    if recorder is not None:
+        recorder.finish(success, extra)
+        recorder.close()
+        write_errors += recorder.errors
     report = None
     if folder is not None:
         try:
@@ -333,16 +369,7 @@ def _execute(
                 runner.ctx.roadmap,
                 runner.trajectory,
                 runner.ctx.planned_paths,
-                extra={
-                    "run_id": run_id,
-                    "robot": config.name,
-                    "start": node,
-                    "adapt": adapt,
-                    "clock": clock.stats(),
-                    "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
-                    "stops": runner.stops,
-                    "drive_commands_sent": vehicle.commands_sent,
-                },
+                extra=extra,
             )
         except OutputError as exc:
             write_errors.append(str(exc))
