@@ -15,5 +15,6 @@ BENCHMARKS: dict[str, str] = {
     "faults": "palletpilot.bench.faults",
     "safety": "palletpilot.bench.safety",
     "perception_service": "palletpilot.bench.perception_service",
+    "robot": "palletpilot.bench.robot",
     "recording": "palletpilot.bench.recording",
 }

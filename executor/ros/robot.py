@@ -154,7 +154,8 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _solve_ms(solve_s: list[float]) -> dict[str, float | None]:
+def _ms_stats(solve_s: list[float]) -> dict[str, float | None]:
+    """Median, p99 and max (ms) of durations in seconds."""
     if not solve_s:
         return {"median": None, "p99": None, "max": None}
     ms = np.asarray(solve_s) * 1e3
@@ -350,9 +351,10 @@ def _execute(
         "start": node,
         "adapt": adapt,
         "clock": clock.stats(),
-        "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
+        "solve_ms": _ms_stats(runner.ctx.follower.log.solve_s),
         "stops": runner.stops,
         "drive_commands_sent": vehicle.commands_sent,
+        "localization_age_ms": _ms_stats(getattr(vehicle, "localization_age_s", [])),
     }
     if recorder is not None:
         recorder.finish(success, extra)

@@ -115,6 +115,7 @@ class RosVehicle:
         self.emergency = False
         self._sent_this_tick = False
         self.commands_sent = 0
+        self.localization_age_s: list[float] = []
 
     # -- receiving --------------------------------------------------------------------------------
     def _on_tf(self, msg: msgs.TFMessage, received_s: float) -> None:
@@ -162,8 +163,11 @@ class RosVehicle:
 
     # -- VehiclePort: readings ----------------------------------------------------------------------
     def localization(self) -> SE2:
-        """`T_world_forklift` (world = the `map` frame): the last fix; the origin before the first."""
+        """`T_world_forklift` (world = the `map` frame): the last fix; the origin before the first.
+        The fix's age at this read goes to `localization_age_s` (the report's `localization_age_ms`)."""
         fix = self._fix()
+        if fix is not None and len(self.localization_age_s) < 1_000_000:
+            self.localization_age_s.append(time.monotonic() - fix[1])
         return (fix[0] if fix is not None else SE2()) @ self.T_base_link_forklift
 
     def localization_stamp(self) -> float:
