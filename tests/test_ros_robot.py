@@ -157,7 +157,19 @@ def test_robot_killed_mid_drive_truck_brakes(tmp_path: Path, dds_env: dict[str, 
     with DdsTransport() as bus:
         bus.subscribe("/odom", m.Odometry, callback=on_odom)
         with stand_in(dds_env, scenario, tmp_path / "serve.log"):
-            robot = _palletpilot(dds_env, "robot", str(mission), "--robot", str(ROBOT), "--wait", "20", "--quiet")
+            journal = tmp_path / "run.db"
+            robot = _palletpilot(
+                dds_env,
+                "robot",
+                str(mission),
+                "--robot",
+                str(ROBOT),
+                "--wait",
+                "20",
+                "--quiet",
+                "--journal",
+                str(journal),
+            )
             t_end = time.monotonic() + 90.0
             while time.monotonic() < t_end and robot.poll() is None:
                 with lock:
@@ -175,6 +187,11 @@ def test_robot_killed_mid_drive_truck_brakes(tmp_path: Path, dds_env: dict[str, 
             time.sleep(1.0 + 1.5 / decel)
             with lock:
                 samples = list(odometry)
+    # started again on the killed run's journal: refused in one line before it connects to anything
+    again = _palletpilot(dds_env, "robot", str(mission), "--robot", str(ROBOT), "--journal", str(journal))
+    _, err = again.communicate(timeout=120)
+    assert again.returncode == 2 and "holds an unfinished run" in err and "Traceback" not in err, err[-2000:]
+    assert len(err.strip().splitlines()) == 1
     before = [v for t, v in samples if t <= t_kill]
     after = [(t, v) for t, v in samples if t > t_kill]
     v_kill = before[-1]

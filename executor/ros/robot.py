@@ -194,6 +194,8 @@ def run_robot(
     from palletpilot.executor.ros.vehicle import RosVehicle
 
     inputs = load_inputs(mission_path, robot_path, calibration_path, adapt)
+    if journal is not None:
+        _check_journal(Path(journal))
     config = inputs.config
     with contextlib.ExitStack() as stack:
         transport = open_transport(config.transport, config.domain_id)
@@ -220,6 +222,28 @@ def run_robot(
             inputs, vehicle, camera, node, stack, mission_path, robot_path, report_dir, journal, perception_mode,
             perception_connect, adapt, progress, controls, settings, (foxglove, foxglove_host),
         )  # fmt: skip
+
+
+def _check_journal(path: Path) -> None:
+    """Refuse, before anything connects, a journal that holds an unfinished run: `palletpilot robot` does
+    not resume one (`RobotError`, one line); a finished run's journal is replaced when the run starts."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    try:
+        old = Journal.open(path)
+    except PalletpilotError:
+        return  # not a journal: `Journal.create` refuses it with its reason
+    try:
+        unfinished = not old.finished
+        last = old.last_checkpoint()
+    finally:
+        old.close()
+    if unfinished:
+        task = "" if last is None else f" (last checkpoint in task {last.get('task', '?')})"
+        raise RobotError(
+            f"{path}: holds an unfinished run{task}; `palletpilot robot` does not resume one: check the truck and "
+            "its load by hand, then remove the file or give another --journal"
+        )
 
 
 def _execute(
