@@ -23,8 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TextIO
 
-import numpy as np
-
 from palletpilot.control.mpc import MpcConfig, MpcFollower
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.executor.behaviour import Settings
@@ -34,7 +32,7 @@ from palletpilot.executor.journal import Journal, JournalError
 from palletpilot.executor.mission import Mission, MissionError, load_mission, validate_mission
 from palletpilot.executor.ports import LocalPerception
 from palletpilot.executor.recording import SimFeed, start_recording
-from palletpilot.executor.report import REPORT_FILES, summary, write_report
+from palletpilot.executor.report import REPORT_FILES, ms_stats, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint
 from palletpilot.executor.runner import Runner
 from palletpilot.executor.trajectory_log import TrajectoryLog
@@ -491,21 +489,9 @@ def _extra(
         "simulated_s": round(sim.time, 2),
         "resumed": 0 if point is None else point.resumes,
         "clock": clock.stats(),
-        "solve_ms": _solve_ms(runner.ctx.follower.log.solve_s),
+        "solve_ms": ms_stats(runner.ctx.follower.log.solve_s),
         "collisions": sim.collisions,
         "stops": runner.stops,
         "faults_injected": injector.injected,
         "pallets": sim.pallet_records(),
-    }
-
-
-def _solve_ms(solve_s: list[float]) -> dict[str, float | None]:
-    """Median, p99 and max controller solve time (ms, wall clock) of a run."""
-    if not solve_s:
-        return {"median": None, "p99": None, "max": None}
-    ms = np.asarray(solve_s) * 1e3
-    return {
-        "median": round(float(np.median(ms)), 2),
-        "p99": round(float(np.percentile(ms, 99)), 2),
-        "max": round(float(ms.max()), 2),
     }

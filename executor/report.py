@@ -130,3 +130,15 @@ def _plot(
     fig.savefig(buf, format="png")
     plt.close(fig)
     return buf.getvalue()
+
+
+def ms_stats(durations_s: list[float]) -> dict[str, float | None]:
+    """Median, p99 and max (ms) of durations in seconds, as report.json states them (None without any)."""
+    if not durations_s:
+        return {"median": None, "p99": None, "max": None}
+    ms = np.asarray(durations_s) * 1e3
+    return {
+        "median": round(float(np.median(ms)), 2),
+        "p99": round(float(np.percentile(ms, 99)), 2),
+        "max": round(float(ms.max()), 2),
+    }

@@ -29,8 +29,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
-
 from palletpilot.control.mpc import MpcConfig, MpcFollower
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.executor.behaviour import Settings
@@ -40,7 +38,7 @@ from palletpilot.executor.journal import Journal
 from palletpilot.executor.mission import Mission, load_mission, validate_mission
 from palletpilot.executor.ports import LocalPerception, PerceptionService
 from palletpilot.executor.recording import Recorder, start_recording
-from palletpilot.executor.report import REPORT_FILES, summary, write_report
+from palletpilot.executor.report import REPORT_FILES, ms_stats, summary, write_report
 from palletpilot.executor.resume import Checkpointer
 from palletpilot.executor.ros.config import RobotConfig, load_robot
 from palletpilot.executor.runner import Runner
@@ -152,18 +150,6 @@ def start_node(roadmap: Roadmap, pose: Any, named: str | None = None) -> str:
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _ms_stats(solve_s: list[float]) -> dict[str, float | None]:
-    """Median, p99 and max (ms) of durations in seconds."""
-    if not solve_s:
-        return {"median": None, "p99": None, "max": None}
-    ms = np.asarray(solve_s) * 1e3
-    return {
-        "median": round(float(np.median(ms)), 2),
-        "p99": round(float(np.percentile(ms, 99)), 2),
-        "max": round(float(ms.max()), 2),
-    }
 
 
 def run_robot(
@@ -375,10 +361,10 @@ def _execute(
         "start": node,
         "adapt": adapt,
         "clock": clock.stats(),
-        "solve_ms": _ms_stats(runner.ctx.follower.log.solve_s),
+        "solve_ms": ms_stats(runner.ctx.follower.log.solve_s),
         "stops": runner.stops,
         "drive_commands_sent": vehicle.commands_sent,
-        "localization_age_ms": _ms_stats(getattr(vehicle, "localization_age_s", [])),
+        "localization_age_ms": ms_stats(getattr(vehicle, "localization_age_s", [])),
     }
     if recorder is not None:
         recorder.finish(success, extra)
