@@ -15,7 +15,7 @@ SYSTEM_LIBS := libusb-1.0-0 libgomp1 mosquitto
 demo: setup
 	$(BIN)/palletpilot map check missions/warehouse.yaml
 	$(BIN)/palletpilot run missions/pickup_delivery.yaml --scenario missions/scenario_demo.yaml --report $(OUT)/demo
-	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl, trajectory.csv)"
+	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl, trajectory.csv, run.mcap)"
 
 test: setup
 	$(BIN)/python -m pytest -q
