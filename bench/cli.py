@@ -9,9 +9,7 @@ import sys
 
 from palletpilot.bench import BENCHMARKS
 from palletpilot.executor.cli_args import Parser
-
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
+from palletpilot.executor.cli_outcome import EXIT_BAD_INPUT, EXIT_OK
 
 
 def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:

@@ -43,6 +43,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
+from palletpilot.executor.cli_outcome import (
+    EXIT_BAD_INPUT,
+    EXIT_INTERNAL,
+    EXIT_OK,
+    EXIT_WRITE_FAILED,
+    mission_outcome,
+)
 from palletpilot.executor.cli_perception import endpoint
 from palletpilot.executor.recording_channels import add_foxglove_argument
 from palletpilot.executor.ros.cli_robot import static_tf_dest
@@ -50,11 +57,6 @@ from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
 
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_BAD_INPUT = 2
-EXIT_WRITE_FAILED = 3
-EXIT_INTERNAL = 70
 """An internal error (a bug): one line naming it, never a traceback unless PALLETPILOT_DEBUG is set."""
 
 DEMO_MISSION = "pickup_delivery.yaml"
@@ -246,27 +248,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             foxglove_host=args.foxglove_host,
         )
     report = result.report.parent if result.report is not None else None
-    if args.json:
-        print(json.dumps(result.summary, indent=2))
-    else:
-        for task in result.summary["tasks"]:
-            why = f" ({task['reason']})" if task["reason"] else ""
-            print(f"{task['type']:9s} {task['node'] or '':14s} {task['result']}{why}, {task['attempts']} estimate(s)")
-        where = f"; report in {report}/" if report is not None else ""
-        print(f"mission {'succeeded' if result.success else 'FAILED'}{where}")
-    for line in result.write_errors:
-        print(f"error: {line}", file=sys.stderr)
-    if result.success:
-        return EXIT_WRITE_FAILED if result.write_errors else EXIT_OK
-    failed = next((t for t in result.runner.results if t.result != "succeeded"), None)
-    if failed is not None:
-        print(
-            f"mission failed: task {failed.index} ({failed.type}): {failed.reason}: {failed.message}; vehicle stopped",
-            file=sys.stderr,
-        )
-    if CONTROLS.cancel_signal is not None:
-        return 128 + CONTROLS.cancel_signal
-    return EXIT_FAILED
+    return mission_outcome(result, report, args.json, CONTROLS, "vehicle")
 
 
 def cmd_examples(args: argparse.Namespace) -> int:

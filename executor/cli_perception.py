@@ -24,12 +24,12 @@ import threading
 from types import FrameType
 from typing import TYPE_CHECKING
 
+from palletpilot.executor.cli_outcome import EXIT_OK
 from palletpilot.geometry.errors import collect, raise_problems
 
 if TYPE_CHECKING:
     from palletpilot.executor.perception_server import PerceptionServer
 
-EXIT_OK = 0
 
 _ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/(.+)")
 _HOST_PORT = re.compile(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})")

@@ -22,8 +22,7 @@ import json
 from pathlib import Path
 
 from palletpilot.executor.cli_args import count, number, out_file, out_folder, seed
-
-EXIT_OK = 0
+from palletpilot.executor.cli_outcome import EXIT_OK
 
 
 def _print(result: dict, as_json: bool) -> None:
