@@ -17,4 +17,5 @@ BENCHMARKS: dict[str, str] = {
     "perception_service": "palletpilot.bench.perception_service",
     "robot": "palletpilot.bench.robot",
     "recording": "palletpilot.bench.recording",
+    "fleet": "palletpilot.bench.fleet",
 }

@@ -1,14 +1,13 @@
-"""VDA 5050 over a real MQTT broker: a mosquitto started on a free loopback port, the AGV in this process on
-the simulated warehouse (wall clock), and a small master (paho) that checks every message it receives
-against the official schemas. `Broker` and `Master` are reused by the end-to-end test."""
+"""VDA 5050 over a real MQTT broker: a mosquitto (else amqtt) started on a free loopback port, the AGV in this
+process on the simulated warehouse (wall clock), and a small master (paho) that checks every message it receives
+against the official schemas. `Broker` (from `palletpilot.executor.vda5050.broker`, re-exported here) and
+`Master` are reused by the end-to-end tests."""
 
 from __future__ import annotations
 
 import json
 import math
-import shutil
 import socket
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,51 +19,21 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from palletpilot.executor.vda5050 import validation
+from palletpilot.executor.vda5050.broker import Broker, available_kind
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSIONS = ROOT / "missions"
-MOSQUITTO = Path("/usr/sbin/mosquitto")
 PREFIX = "uagv/v2/palletpilot/0001"
 
 needs_broker = pytest.mark.skipif(
-    not MOSQUITTO.exists() and shutil.which("mosquitto") is None,
-    reason="needs the mosquitto MQTT broker (/usr/sbin/mosquitto: Debian package mosquitto; `make test` installs it)",
+    available_kind() is None,
+    reason="needs an MQTT broker: mosquitto (/usr/sbin/mosquitto: Debian package mosquitto; `make test` installs it)"
+    " or amqtt",
 )
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Broker:
-    """A mosquitto broker on 127.0.0.1:`port` (no persistence: a restart forgets retained messages)."""
-
-    def __init__(self, folder: Path, port: int | None = None) -> None:
-        self.port = port or free_port()
-        self.conf = folder / "mosquitto.conf"
-        self.conf.write_text(f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n")
-        self.log = folder / "mosquitto.log"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        binary = str(MOSQUITTO) if MOSQUITTO.exists() else str(shutil.which("mosquitto"))
-        with self.log.open("ab") as log:
-            self.proc = subprocess.Popen([binary, "-c", str(self.conf)], stdout=log, stderr=log)
-        deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:
-            with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", self.port)) == 0:
-                    return
-            time.sleep(0.05)
-        raise RuntimeError(f"mosquitto did not start on port {self.port}: {self.log.read_text()[-500:]}")
-
-    def stop(self) -> None:
-        if self.proc is not None:
-            self.proc.terminate()
-            self.proc.wait(timeout=10)
-            self.proc = None
+needs_mosquitto = pytest.mark.skipif(
+    available_kind() != "mosquitto",
+    reason="checks the QoS a subscriber gets: amqtt 0.12 delivers QoS 0 messages at the subscription's QoS 1",
+)
 
 
 class Master:
@@ -206,8 +175,8 @@ def check_sequence(messages: list[dict[str, Any]]) -> None:
 
 @pytest.fixture(scope="module")
 def broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Broker]:
-    if not MOSQUITTO.exists() and shutil.which("mosquitto") is None:
-        pytest.skip("needs the mosquitto MQTT broker (/usr/sbin/mosquitto: Debian package mosquitto)")
+    if available_kind() is None:
+        pytest.skip("needs an MQTT broker: mosquitto (/usr/sbin/mosquitto: Debian package mosquitto) or amqtt")
     b = Broker(tmp_path_factory.mktemp("broker"))
     b.start()
     yield b
@@ -236,6 +205,11 @@ def agv(broker: Broker, tmp_path_factory: pytest.TempPathFactory) -> Iterator[An
         t.start()
     link.start()
     assert link.connected.wait(20), lines
+    probe = Master(broker.port)  # the retained ONLINE is at the broker before any test's master subscribes
+    try:
+        probe.wait("ONLINE", lambda d: d["connectionState"] == "ONLINE", 20, name="connection")
+    finally:
+        probe.close()
     yield the_agv
     stop.set()
     the_agv.stop()
@@ -265,6 +239,7 @@ def test_online_retained_and_factsheet(agv: Any, master: Master) -> None:
 
 
 @needs_broker
+@needs_mosquitto
 def test_states_count_up_and_visualization_runs(agv: Any, master: Master) -> None:
     for _ in range(3):
         master.send_instant(action("stateRequest", f"sr{time.monotonic_ns()}"))
