@@ -31,10 +31,10 @@ Figures (one machine, one clock; the measuring window runs from the first order 
   (mosquitto or amqtt), `seed`, and the goal: `goal_state_latency_ms_p99` (50 ms) and `meets_goal` (that
   p99 met and every order finished: a fleet whose trucks stop for want of CPU meets no goal).
 
-`--out DIR` keeps each AGV's `agv-<serial>.yaml` and `agv-<serial>.log` (its stderr) and `broker/` (the
-broker's config and log) in DIR, to look into a failure. Every child process runs in a session of its own
-and is always ended (SIGTERM, SIGKILL after 10 s), the AGVs first and then the broker, on success, on
-errors, on Ctrl-C and on SIGTERM to the bench.
+`--out DIR` keeps each AGV's `agv-<serial>.yaml`, `agv-<serial>.log` (its stderr), `agv-<serial>/run.mcap`
+(its recording) and `broker/` (the broker's config and log) in DIR, to look into a failure. Every child
+process runs in a session of its own and is always ended (SIGTERM, SIGKILL after 10 s), the AGVs first
+and then the broker, on success, on errors, on Ctrl-C and on SIGTERM to the bench.
 
 A fleet that cannot be brought up raises `FleetBenchError` (one line, exit 2); no broker to start,
 `BrokerUnavailableError` likewise.
@@ -273,7 +273,7 @@ def _write_config(folder: Path, serial: str, port: int, args: argparse.Namespace
 def _launch(agv: _Agv, config: Path, scenario: Path, folder: Path, ready: queue.Queue[tuple[str, str]]) -> None:
     """Start one `palletpilot agv` in a session of its own; its first stdout line goes to `ready`."""
     cmd = [sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(config), "--sim", str(scenario)]
-    cmd += ["--labels", "truth", "--seed", str(agv.sim_seed)]
+    cmd += ["--labels", "truth", "--seed", str(agv.sim_seed), "--report", str(folder / f"agv-{agv.serial}")]
     agv.log = (folder / f"agv-{agv.serial}.log").open("w")
     agv.proc = subprocess.Popen(
         cmd,

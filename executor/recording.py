@@ -5,7 +5,19 @@ carry the same channels) is fed by a run: `attach(runner)` (events through the r
 the vehicle's readings through a pass-through wrapper), `tick()` once per control tick (the
 simulator's step callback; a robot's loop), `wrap_grab` / `wrap_segmenter` (the camera frames
 perception used and the labels it segmented), `finish(success)` and `close()`. A `SimFeed` adds the
-simulator's truth. The recorder never changes what the run does: it only reads, it never draws from
+simulator's truth.
+
+A session (`palletpilot agv`: one `Runner` per leg, for as long as the process lives) records into one
+file: `start_session(...)` once (the roadmap, the truck, the vehicle wrapper every runner then drives
+through), `attach(runner)` at the start of each leg and `detach()` at its end, `tick()` every control
+tick (between legs `/tf` and `/vehicle/state` at 2 Hz), `note(event, data)` for the session's own
+events (orders, instant actions, legs: `/log` and `/events`, as a runner's), `finish_session(...)`
+(`/report/run` with every leg's task results, so `palletpilot replay` reads a session as it reads a
+run) and `close()`. `flush_s` finishes the current MCAP chunk that often (wall time), so a process
+that dies loses at most that much: its file lacks the summary and ends in an open chunk, a streaming
+reader (`mcap.stream_reader`) reads every flushed chunk, `palletpilot replay` refuses it in one line.
+
+The recorder never changes what the run does: it only reads, it never draws from
 the simulator's random generators, and any error in it is recorded once (`errors`) and ends the
 recording, never the run.
 
@@ -18,7 +30,8 @@ Channels: `executor.recording_channels` lists them (topic, schema, when; `TOPICS
 Cost: the recorder times itself; `cost()` gives the time spent in it per control tick (mean, p99,
 max, ms), also written as the MCAP metadata record `recording_cost`.
 
-Public API: `Recorder`, `SimFeed`, `RecordingVehicle`, `start_recording`, `add_foxglove_argument`,
+Public API: `Recorder` (`attach`, `tick`, `finish`, `close`; sessions: `start_session`, `detach`,
+`note`, `finish_session`), `SimFeed`, `RecordingVehicle`, `start_recording`, `add_foxglove_argument`,
 `FOXGLOVE_PORT`, `SIM_EPOCH_NS`, `RECORDING`, `RESUMED_RECORDING`, `TOPICS`.
 """
 
@@ -28,6 +41,7 @@ import json
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -55,6 +69,7 @@ from palletpilot.executor.recording_channels import (
     DRIVEN_EVERY,
     DRIVEN_STEP_M,
     FOXGLOVE_PORT,
+    IDLE_EVERY,
     JSON_FIELDS,
     RECORDING,
     RESUMED_RECORDING,
@@ -77,8 +92,16 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import pallet_pose_at_node
 
 if TYPE_CHECKING:
+    from palletpilot.control.follower import Follower
+    from palletpilot.control.vehicle import VehicleParams
     from palletpilot.executor.ports import VehiclePort
+    from palletpilot.executor.results import TaskResult
     from palletpilot.executor.runner import Runner
+    from palletpilot.perception.specs import ForkGeometry
+    from palletpilot.roadmap import Roadmap
+
+COST_SAMPLES = 72_000
+"""Tick costs kept for `cost()`'s p99: the last hour at 20 Hz (mean and max are over every tick)."""
 
 __all__ = [
     "FOXGLOVE_PORT",
@@ -100,11 +123,22 @@ class Recorder:
     the channels live on host:port (None: no server, 0: any free port, see `port`); `wall`: stamps from
     wall time (else simulated time from `SIM_EPOCH_NS`). A server that cannot start raises
     `RecordingError` (an input problem: the port is taken); a file that cannot be opened is a line in
-    `errors` and the run goes on without it."""
+    `errors` and the run goes on without it. `flush_s`: finish the current chunk at least this often
+    (wall seconds; None: only when it is full, 1 MiB)."""
 
-    def __init__(self, mcap: Path | None, port: int | None = None, wall: bool = False, host: str = "127.0.0.1") -> None:
+    def __init__(
+        self,
+        mcap: Path | None,
+        port: int | None = None,
+        wall: bool = False,
+        host: str = "127.0.0.1",
+        flush_s: float | None = None,
+    ) -> None:
         self.path = mcap
         self.wall = wall
+        self.flush_s = flush_s
+        self._last_flush = time.monotonic()
+        self._session = False
         self.errors: list[str] = []
         self.ctx = foxglove.Context()
         self._lock = threading.Lock()
@@ -114,13 +148,18 @@ class Recorder:
         self._now: Callable[[], float] = lambda: 0.0
         self._epoch_ns = SIM_EPOCH_NS
         self._last_ns = 0
-        self._tick_s: list[float] = []
+        self._tick_s: deque[float] = deque(maxlen=COST_SAMPLES)  # the last hour's ticks (a session is long)
+        self._tick_stats = [0, 0.0, 0.0]  # every tick: count, total (s), max (s)
         self._pending_s = 0.0
         self._ticks = 0
         self.counts: dict[str, int] = {}
         self.runner: Runner | None = None
         self.sim: SimFeed | None = None
         self.vehicle: RecordingVehicle | None = None
+        self._params: VehicleParams | None = None
+        self._forks: ForkGeometry | None = None
+        self._roadmap: Roadmap | None = None
+        self._follower: Follower | None = None
         self._init_state()
         if mcap is not None:
             try:
@@ -227,29 +266,75 @@ class Recorder:
     # -- wiring -----------------------------------------------------------------------------------------
     def attach(self, runner: Runner, sim: SimFeed | None = None) -> None:
         """Follow `runner`: its clock, its events (listener), its vehicle's readings (wrapped); record the
-        roadmap and the start. Call before the runner logs its first event."""
-        self.runner, self.sim = runner, sim
+        roadmap and the start. Call before the runner logs its first event. In a session: a new leg (the
+        runner drives the session's vehicle wrapper; the roadmap was recorded at the session's start)."""
+        self.runner = runner
+        ctx = runner.ctx
+        self._params, self._forks, self._roadmap, self._follower = ctx.params, ctx.forks, ctx.roadmap, ctx.follower
+        runner.listeners.append(self.on_event)
+        if self._session:
+            self._guard("leg", self._leg_start)
+            return
+        self.sim = sim
         self._now = runner.clock.now
         if self.wall:
             self._epoch_ns = time.time_ns() - round(runner.clock.now() * 1e9)
-        runner.listeners.append(self.on_event)
         commanded = runner.vehicle  # the runner's CommandedVehicle: wrap what it wraps
         self.vehicle = RecordingVehicle(commanded.inner, on_beams=self._beams_read)
         commanded.inner = cast("VehiclePort", self.vehicle)
-        self._guard("start", self._start)
+        self._guard("start", lambda: self._start(runner.mission.name))
 
-    def _start(self) -> None:
-        assert self.runner is not None
+    def start_session(
+        self,
+        vehicle: VehiclePort,
+        now: Callable[[], float],
+        params: VehicleParams,
+        forks: ForkGeometry,
+        roadmap: Roadmap,
+        follower: Follower,
+        name: str,
+    ) -> VehiclePort:
+        """Start recording a session of many runs (see the module docstring) on `vehicle` with the clock
+        `now` (s); record the roadmap. Returns the vehicle every runner of the session must drive (it
+        passes everything through to `vehicle` and remembers what was read)."""
+        self._session = True
+        self._now = now
+        self._params, self._forks, self._roadmap, self._follower = params, forks, roadmap, follower
+        if self.wall:
+            self._epoch_ns = time.time_ns() - round(now() * 1e9)
+        self.vehicle = RecordingVehicle(vehicle, on_beams=self._beams_read)
+        self._guard("start", lambda: self._start(name))
+        return cast("VehiclePort", self.vehicle)
+
+    def detach(self) -> None:
+        """The end of a session's leg: ticks go on without a runner until the next `attach`."""
+        self.runner = None
+
+    def _leg_start(self) -> None:
+        """A session's new leg: forget the last leg's task, plans and estimates (the calibration stays)."""
+        self._state, self._task_index, self._task = "", -1, None
+        self._state_started = {}
+        self._paths_seen, self._path_points = 0, []
+        self._estimates = []
+        self._driven, self._driven_sent = [], 0  # each leg's own driven line: no message grows for ever
+
+    def note(self, event: str, data: dict[str, Any]) -> None:
+        """An event of the session itself (an order, an instant action, a leg), recorded as a runner's
+        events are (`/log` with its level, `/events`); from any thread."""
+        self._guard(f"event {event}", lambda: self._event(event, data, self._now()))
+
+    def _start(self, name: str) -> None:
+        assert self._roadmap is not None
         ns = self.ns()
-        ctx = self.runner.ctx
-        roadmap = ctx.roadmap
+        roadmap = self._roadmap
         if self._writer is not None:
             self._writer.write_metadata(
                 "palletpilot",
                 {
-                    "mission": self.runner.mission.name,
+                    "mission": name,
                     "clock": "wall" if self.wall else "simulated",
                     "frames": "map base_link camera",
+                    **({"session": "one runner per leg"} if self._session else {}),
                 },
             )
         nodes = [scene.node_json(n) for n in roadmap.nodes() if not n.temporary]
@@ -284,17 +369,28 @@ class Recorder:
 
     def tick(self) -> None:
         """One control tick (call once per tick, e.g. at the start of the simulator's step)."""
-        if self.runner is None:
+        if self.vehicle is None:
             return
         self._guard("tick", self._tick)
         with self._lock:
-            self._tick_s.append(self._pending_s)
+            spent = self._pending_s
+            self._tick_s.append(spent)
+            stats = self._tick_stats
+            stats[0], stats[1], stats[2] = stats[0] + 1, stats[1] + spent, max(stats[2], spent)
             self._pending_s = 0.0
 
     def finish(self, success: bool, extra: dict[str, Any] | None = None) -> None:
         """The end of the run: `/report/run` (every TaskResult, and `extra`: the report's run figures), the
         final scene, the cost metadata."""
         self._guard("finish", lambda: self._finish(success, extra))
+
+    def finish_session(
+        self, name: str, success: bool, results: list[TaskResult], extra: dict[str, Any] | None = None
+    ) -> None:
+        """The end of a session: `/report/run` named `name` with every leg's `TaskResult` and `extra`, the
+        final scene, the cost metadata (then `close()`)."""
+        doc: dict[str, Any] = {"mission": name, "success": success, **(extra or {})}
+        self._guard("finish", lambda: self._report(doc, results))
 
     def close(self) -> None:
         """Finish the file and stop the server (idempotent). Errors land in `errors`."""
@@ -318,15 +414,18 @@ class Recorder:
                 self.errors.append(f"foxglove: cannot stop the server: {exc}")
 
     def cost(self) -> dict[str, Any]:
-        """Time spent in the recorder per control tick (ms): `ticks`, `mean_ms`, `p99_ms`, `max_ms`."""
-        ms = np.asarray(self._tick_s, dtype=float) * 1e3
-        if not ms.size:
+        """Time spent in the recorder per control tick (ms): `ticks`, `mean_ms`, `p99_ms` (over the last
+        `COST_SAMPLES` ticks), `max_ms`."""
+        with self._lock:
+            ms = np.asarray(self._tick_s, dtype=float) * 1e3
+            count, total, most = self._tick_stats
+        if not count:
             return {"ticks": 0, "mean_ms": None, "p99_ms": None, "max_ms": None}
         return {
-            "ticks": int(ms.size),
-            "mean_ms": round(float(ms.mean()), 4),
+            "ticks": int(count),
+            "mean_ms": round(total / count * 1e3, 4),
             "p99_ms": round(float(np.percentile(ms, 99)), 4),
-            "max_ms": round(float(ms.max()), 3),
+            "max_ms": round(most * 1e3, 3),
         }
 
     # -- events -------------------------------------------------------------------------------------------
@@ -425,12 +524,18 @@ class Recorder:
 
     # -- ticks --------------------------------------------------------------------------------------------
     def _tick(self) -> None:
-        runner, vehicle = self.runner, self.vehicle
-        assert runner is not None and vehicle is not None
+        runner, vehicle = self.runner, self.vehicle  # no runner: between a session's legs
+        assert vehicle is not None and self._roadmap is not None
         self._ticks += 1
+        if self.flush_s is not None and time.monotonic() - self._last_flush >= self.flush_s:
+            self._last_flush = time.monotonic()
+            writer = self._writer
+            if writer is not None:
+                writer.flush()  # a finished chunk on disk: a crash loses at most the last flush_s
+        if runner is None and self._ticks % IDLE_EVERY:
+            return  # between legs the truck stands: 2 Hz is enough
         ns = self.ns()
         ts = scene.stamp(ns)
-        ctx = runner.ctx
         height = vehicle.fork_height
         pose = vehicle.last_pose
         transforms = []
@@ -461,7 +566,8 @@ class Recorder:
             self.ch_tf.log(FrameTransforms(transforms=transforms), log_time=ns)
             self._count("/tf")
         loaded = bool(vehicle.load_detected())
-        follower = ctx.follower
+        follower = self._follower
+        assert follower is not None
         flog = follower.log
         lateral = heading = solve = None
         if len(flog.lateral) > self._n_lateral:
@@ -470,6 +576,7 @@ class Recorder:
         if len(flog.solve_s) > self._n_solve:
             self._n_solve = len(flog.solve_s)
             solve = flog.solve_s[-1] * 1e3
+        commanded = None if runner is None else finite(getattr(runner.vehicle, "commanded_speed", None), 4)
         state = {
             "t_s": round(self._now(), 3),
             "x_m": None if pose is None else round(pose.x, 4),
@@ -477,7 +584,7 @@ class Recorder:
             "yaw_deg": None if pose is None else round(math.degrees(pose.yaw), 3),
             "speed_mps": finite(vehicle.speed, 4),
             "steering_deg": finite(math.degrees(vehicle.steering), 3),
-            "commanded_speed_mps": finite(getattr(runner.vehicle, "commanded_speed", None), 4),
+            "commanded_speed_mps": commanded,
             "fork_height_m": finite(height, 4),
             "loaded": loaded,
             "lateral_error_m": finite(lateral, 4),
@@ -489,17 +596,20 @@ class Recorder:
         self.json["/vehicle/state"].log(json.dumps(state).encode(), log_time=ns)
         self._count("/vehicle/state")
         self._horizon(follower, ns)
-        if len(ctx.planned_paths) != self._paths_seen:
-            self._paths_seen = len(ctx.planned_paths)
-            self._path_points = [[Point3(x=x, y=y, z=0.0) for x, y in p[::2] + p[-1:]] for p in ctx.planned_paths]
+        planned = [] if runner is None else runner.ctx.planned_paths
+        if runner is not None and len(planned) != self._paths_seen:
+            self._paths_seen = len(planned)
+            self._path_points = [[Point3(x=x, y=y, z=0.0) for x, y in p[::2] + p[-1:]] for p in planned]
             self.log_scene("/scene/planned_paths", scene.paths_update(self._path_points, ns), ns)
-        if ctx.roadmap.version != self._roadmap_version:
-            self._roadmap_version = ctx.roadmap.version
-            self.log_scene("/scene/temporary_nodes", scene.roadmap_update(ctx.roadmap, ns, temporary=True), ns)
+        roadmap = self._roadmap
+        if roadmap.version != self._roadmap_version:
+            self._roadmap_version = roadmap.version
+            self.log_scene("/scene/temporary_nodes", scene.roadmap_update(roadmap, ns, temporary=True), ns)
         key = (round(height, 3), loaded)
         if key != self._truck_key:
             self._truck_key = key
-            self.log_scene("/scene/truck", scene.truck_update(ctx.params, ctx.forks, height, loaded, ns), ns)
+            assert self._params is not None and self._forks is not None
+            self.log_scene("/scene/truck", scene.truck_update(self._params, self._forks, height, loaded, ns), ns)
         self._safety(ns)
         if self._ticks % BEAMS_EVERY == 0:
             self._beams(vehicle.inner.proximity_ranges(), "recorder", ns)
@@ -538,8 +648,8 @@ class Recorder:
             self.log_scene("/scene/mpc_horizon", scene.polyline_update("mpc", [], ns, (0, 0, 0, 0), 0.0), ns)
 
     def _safety(self, ns: int) -> None:
-        assert self.runner is not None and self.vehicle is not None
-        params = self.runner.ctx.params
+        params, forks = self._params, self._forks
+        assert params is not None and forks is not None and self.vehicle is not None
         if params.safety_scanner is None:
             return
         s = self.vehicle.inner.safety_state()
@@ -548,7 +658,6 @@ class Recorder:
         if key == self._safety_key:
             return
         self._safety_key = key
-        forks = self.runner.ctx.forks
         fields = safety_fields(params, speed, s.direction, s.field_set, forks.tip_x)
         z = params.safety_scanner.scan_height
         update = scene.safety_update(fields, s.warning, s.protective_stop, s.intrusions, z, ns)
@@ -558,10 +667,10 @@ class Recorder:
         self._guard("beams", lambda: self._beams(ranges, "executor", self.ns()))
 
     def _beams(self, ranges: tuple[float, float], who: str, ns: int) -> None:
-        assert self.runner is not None and self.vehicle is not None
+        assert self._forks is not None and self.vehicle is not None
         left, right = (float(r) for r in ranges)
         self.log_json("/vehicle/beams", {"left_m": finite(left, 4), "right_m": finite(right, 4), "read_by": who}, ns)
-        update = scene.beams_update(self.runner.ctx.forks, self.vehicle.fork_height, (left, right), ns)
+        update = scene.beams_update(self._forks, self.vehicle.fork_height, (left, right), ns)
         self.log_scene("/scene/beams", update, ns)
 
     # -- camera -------------------------------------------------------------------------------------------
@@ -600,8 +709,6 @@ class Recorder:
     def _finish(self, success: bool, extra: dict[str, Any] | None) -> None:
         assert self.runner is not None
         runner = self.runner
-        ns = self.ns()
-        self._send_driven(ns)
         doc: dict[str, Any] = {
             "mission": runner.mission.name,
             "success": success,
@@ -610,9 +717,15 @@ class Recorder:
             "clock": runner.clock.stats(),
         }
         if self.sim is not None:
-            doc.update(self.sim.finish(self, ns))
+            doc.update(self.sim.finish(self, self.ns()))
         doc.update(extra or {})
-        doc["results"] = [r.to_json() for r in runner.results]
+        self._report(doc, runner.results)
+
+    def _report(self, doc: dict[str, Any], results: list[TaskResult]) -> None:
+        """`/report/run` (`doc` and every result), the driven path's last points, the cost metadata."""
+        ns = self.ns()
+        self._send_driven(ns)
+        doc["results"] = [r.to_json() for r in results]
         self.log_json("/report/run", doc, ns)
         if self._writer is not None:
             cost = self.cost()
@@ -620,13 +733,18 @@ class Recorder:
 
 
 def start_recording(
-    folder: Path | None, port: int | None, wall: bool, resumed: bool = False, host: str = "127.0.0.1"
+    folder: Path | None,
+    port: int | None,
+    wall: bool,
+    resumed: bool = False,
+    host: str = "127.0.0.1",
+    flush_s: float | None = None,
 ) -> Recorder | None:
     """The recorder of a run: `run.mcap` (`run-resumed.mcap` for a resumed run) in the report folder
     and/or the live server on `host:port`; None when neither is asked for. A file that cannot be opened
     is a line in `Recorder.errors` (the run goes on without it); a port that cannot be served raises
-    `RecordingError`."""
+    `RecordingError`. `flush_s`: see `Recorder`."""
     if folder is None and port is None:
         return None
     path = None if folder is None else folder / (RESUMED_RECORDING if resumed else RECORDING)
-    return Recorder(path, port, wall=wall, host=host)
+    return Recorder(path, port, wall=wall, host=host, flush_s=flush_s)

@@ -8,7 +8,8 @@ Channels (well-known Foxglove schemas, protobuf; `palletpilot.*`: JSON with a JS
 topic, schema, when.
 
 - `/tf`, foxglove.FrameTransforms, every tick: `map -> base_link` (localization as the executor read
-  it), `base_link -> camera` (the last calibration, at the lift height; from the first calibration on)
+  it), `base_link -> camera` (the last calibration, at the lift height; from the first calibration on);
+  between the legs of an AGV session (no runner), `/tf` and `/vehicle/state` at 2 Hz
 - `/vehicle/state`, palletpilot.VehicleState, every tick: pose, speed, steering, commanded speed, fork
   height, load, lateral and heading error, MPC solve time, state, task
 - `/vehicle/beams`, palletpilot.Beams, 2 Hz and whenever the executor reads them: fork-tip ranges (m)
@@ -60,6 +61,7 @@ DRIVEN_STEP_M = 0.10  # a driven-path point every 10 cm
 PALLETS_EVERY = 5  # ticks: a carried pallet's pose at 4 Hz
 OBSTACLES_EVERY = 20  # ticks: walking people at 1 Hz
 DEPTH_STRIDE = 3  # every 3rd depth pixel each way: 1/9 of the points
+IDLE_EVERY = 10  # ticks: between a session's legs (`palletpilot agv`) the truck at 2 Hz
 
 ERROR_EVENTS = frozenset(
     {
@@ -70,6 +72,7 @@ ERROR_EVENTS = frozenset(
         "stop_error",
         "stop_failed",
         "return_failed",
+        "leg_failed",
     }
 )
 WARNING_EVENTS = frozenset(
@@ -84,6 +87,8 @@ WARNING_EVENTS = frozenset(
         "paused",
         "returning_on_failure",
         "recording_error",
+        "order_rejected",
+        "message_rejected",
     }
 )
 DEBUG_EVENTS = frozenset({"state_start", "state_end"})

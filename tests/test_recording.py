@@ -229,3 +229,18 @@ def test_the_shipped_layout_shows_recorded_channels(recorded, tmp_path, capsys):
     state = rec["messages"]["/vehicle/state"][0][1]
     assert {"lateral_error_m", "speed_mps"} <= plotted and plotted <= set(state)
     assert main(["examples", "--out", str(tmp_path / "ex")]) == 0 and (tmp_path / "ex" / LAYOUT).is_file()
+
+
+def test_agv_foxglove_port_in_use_is_one_line_exit_2(tmp_path, capsys):
+    """`palletpilot agv --foxglove PORT` as `run`'s: a taken port is one line and exit 2, before connecting."""
+    from test_vda5050_mqtt import MISSIONS, write_config
+
+    config = write_config(tmp_path, 1883)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        args = ["--sim", str(MISSIONS / "suite" / "floor_b2.yaml"), "--report", str(tmp_path / "r")]
+        code = main(["agv", "--config", str(config), *args, "--labels", "truth", "--foxglove", str(port)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and f"--foxglove: cannot serve on 127.0.0.1:{port}" in err[0], err

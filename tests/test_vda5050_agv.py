@@ -2,19 +2,45 @@
 master in the test: an order with a pick at a pallet node (base up to the decision point, the drop in the
 horizon), an update that stitches at the decision point and releases the drop, the broker restarted while
 the truck drives (it keeps driving, reconnects and republishes its state), both actions FINISHED, every
-message schema-valid, and a clean shutdown that leaves `connection` OFFLINE."""
+message schema-valid, and a clean shutdown that leaves `connection` OFFLINE and a finished `run.mcap`.
+
+In process, without a broker (the master's messages handed to `Agv.on_message`): a short order's session
+recorded to one `run.mcap` (channels, events, `palletpilot replay` on it; a killed session's file)."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
-from test_vda5050_mqtt import MISSIONS, Broker, Master, action, needs_broker, status, write_config
+import pytest
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message
+from mcap.stream_reader import StreamReader
+from test_vda5050_mqtt import (
+    MISSIONS,
+    Broker,
+    Master,
+    action,
+    make_order,
+    needs_broker,
+    status,
+    write_config,
+)
 
+from palletpilot.cli import main
+from palletpilot.executor.recording import RECORDING
+from palletpilot.executor.replay import read_recording
+from palletpilot.executor.vda5050 import validation
+
+AGV = [sys.executable, "-m", "palletpilot.cli", "agv"]
 PATH = ["a2", "a3", "floor_a3_pre", "floor_a3", "floor_a3_pre", "a3", "a_bot", "c_w", "j_charge", "j_drop"]
 TAIL = ["drop_pre", "drop", "drop_pre"]
 SCENARIO = """\
@@ -41,7 +67,7 @@ def test_pick_and_drop_order_through_a_broker_restart(tmp_path: Path) -> None:
     scenario.write_text(SCENARIO.format(map=MISSIONS / "warehouse.yaml", forks=MISSIONS / "forks.yaml"))
     log = (tmp_path / "agv.log").open("w")
     agv = subprocess.Popen(
-        [sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(config), "--sim", str(scenario)],
+        [*AGV, "--config", str(config), "--sim", str(scenario), "--report", str(tmp_path / "agv")],
         stdout=subprocess.PIPE,
         stderr=log,
         text=True,
@@ -104,6 +130,12 @@ def test_pick_and_drop_order_through_a_broker_restart(tmp_path: Path) -> None:
 
         agv.send_signal(signal.SIGTERM)
         assert agv.wait(timeout=30) == 0
+        # the session's recording, finished on SIGTERM: every leg's task (the Delivery may still have been
+        # finishing its last state when the signal came: then it is cancelled)
+        results = read_recording(tmp_path / "agv" / RECORDING).run["results"]
+        tasks = [(r["type"], r["reason"]) for r in results]
+        assert tasks[:3] == [("move", None), ("pickup", None), ("move", None)], tasks
+        assert tasks[3:] in ([("delivery", None)], [("delivery", "cancelled")]), tasks
         late = Master(broker.port)
         try:
             assert late.wait("OFFLINE", lambda d: True, 10, name="connection")["connectionState"] == "OFFLINE"
@@ -117,3 +149,96 @@ def test_pick_and_drop_order_through_a_broker_restart(tmp_path: Path) -> None:
         broker.stop()
         log.close()
         print((tmp_path / "agv.log").read_text()[-3000:])
+
+
+# -- the session's recording (in process, no broker: the master's messages handed in directly) -----------
+
+
+def advertised(port: int | None) -> set[str]:
+    """The topics a Foxglove WebSocket server on 127.0.0.1:`port` advertises."""
+    from websockets.sync.client import connect
+
+    seen: set[str] = set()
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+        for _ in range(10):
+            msg = ws.recv(timeout=5)
+            doc = json.loads(msg) if isinstance(msg, str) else {}
+            if doc.get("op") == "advertise":
+                seen |= {ch["topic"] for ch in doc["channels"]}
+                if "/vehicle/state" in seen:
+                    break
+    return seen
+
+
+def test_an_agv_session_is_recorded_to_one_run_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A short order (b_bot -> b1, 2 m, one move leg) on the simulated warehouse: after the AGV's normal shutdown
+    run.mcap decodes with the run's channels, the truck and tf recorded through the session, the order and
+    the leg as events; `palletpilot replay` gives the session's report (the leg's Move task)."""
+    from test_recording import read_mcap
+
+    from palletpilot.executor.recording import Recorder
+    from palletpilot.executor.vda5050.agv import Agv
+    from palletpilot.executor.vda5050.config import load_config
+    from palletpilot.executor.vda5050.vehicle import sim_backend
+
+    loaded = load_config(write_config(tmp_path, 1883))  # never connected
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text(
+        f"map: {MISSIONS / 'warehouse.yaml'}\nforks: {MISSIONS / 'forks.yaml'}\nseed: 3\nstart: b_bot\n"
+    )
+    backend = sim_backend(loaded, scenario, labels="truth")
+    backend.follower.mpc.solve_deadline_s = None  # about the recording: a loaded machine must not fail the leg
+    recorder = Recorder(tmp_path / RECORDING, port=0, wall=True, flush_s=1.0)  # and live, on any free port
+    the_agv = Agv(loaded, backend, recorder=recorder)
+    thread = threading.Thread(target=the_agv.run, daemon=True)
+    thread.start()
+    try:
+        head = {"headerId": 1, "timestamp": validation.Stamper()(), "version": "2.1.0"}
+        head |= {"manufacturer": "palletpilot", "serialNumber": "0001"}
+        the_agv.on_message("order", json.dumps({**head, **make_order("rec1", ["b_bot", "b1"])}).encode())
+        deadline = time.monotonic() + 30.0
+        while not the_agv.legs and time.monotonic() < deadline:
+            time.sleep(0.05)
+        live = advertised(recorder.port)
+        time.sleep(0.3)  # a few ticks of standing still after the leg
+        shutil.copy(tmp_path / RECORDING, tmp_path / "killed.mcap")  # the file as a crash would leave it
+    finally:
+        the_agv.stop()
+        thread.join(timeout=10)
+        errors = the_agv.finish_recording()
+        backend.close()
+    assert errors == [] and [leg["ok"] for leg in the_agv.legs] == [True], the_agv.legs
+    assert {"/tf", "/vehicle/state", "/scene/truck", "/log", "/events"} <= live
+
+    rec = read_mcap(tmp_path / RECORDING)
+    counts = {topic: len(m) for topic, m in rec["messages"].items()}
+    assert counts["/tf"] > 20 and counts["/vehicle/state"] > 20 and counts["/scene/truck"] >= 1
+    assert counts["/roadmap/graph"] == 1 and counts["/scene/roadmap"] == 1 and counts["/report/run"] == 1
+    events = [doc["event"] for _, doc in rec["messages"]["/events"]]
+    assert events.index("order_accepted") < events.index("leg_start") < events.index("task_start")
+    assert events.index("task_end") < events.index("leg_end")
+    run = rec["messages"]["/report/run"][0][1]
+    assert run["success"] and [r["type"] for r in run["results"]] == ["move"]
+    assert rec["metadata"]["palletpilot"]["session"] and "recording_cost" in rec["metadata"]
+    xy = [(d["x_m"], d["y_m"]) for _, d in rec["messages"]["/vehicle/state"] if d["x_m"] is not None]
+    assert abs(xy[0][1] - 3.0) < 0.2 and abs(xy[-1][1] - 5.0) < 0.2  # from b_bot to b1
+
+    assert main(["replay", str(tmp_path / RECORDING), "--report", str(tmp_path / "replayed")]) == 0
+    report = json.loads((tmp_path / "replayed" / "report.json").read_text())
+    assert report["success"] and [t["type"] for t in report["tasks"]] == ["move"] and report["legs"]
+    assert "replayed" in capsys.readouterr().out
+
+    # killed before the end: no summary and an open chunk, but the flushed chunks read in order (a streaming
+    # reader stops at the open one); replay needs the summary and the session report, and refuses in one line
+    topics: dict[int, str] = {}
+    seen: list[str] = []
+    with (tmp_path / "killed.mcap").open("rb") as f, contextlib.suppress(McapError):
+        for record in StreamReader(f).records:
+            if isinstance(record, Channel):
+                topics[record.id] = record.topic
+            elif isinstance(record, Message):
+                seen.append(topics[record.channel_id])
+    assert seen.count("/tf") > 10 and "/roadmap/graph" in seen
+    assert main(["replay", str(tmp_path / "killed.mcap"), "--report", str(tmp_path / "no")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "killed.mcap" in err, err

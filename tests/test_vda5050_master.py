@@ -55,7 +55,10 @@ def test_an_independent_2_0_master_runs_a_pick_and_drop_order(tmp_path: Path) ->
     order.write_text(json.dumps(make_order("m1", PATH + TAIL, actions={3: [pick], 11: [drop]})))
     log = (tmp_path / "agv.log").open("w")
     agv = subprocess.Popen(
-        [sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(config), "--sim", str(scenario)],
+        [
+            *(sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(config), "--sim", str(scenario)),
+            *("--report", str(tmp_path / "agv")),
+        ],
         stdout=subprocess.PIPE,
         stderr=log,
         text=True,

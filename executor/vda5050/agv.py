@@ -22,7 +22,15 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 After a failure the truck stays stopped and takes no further leg until the master cancels the order or
 sends a new one. Connection loss changes nothing here: the truck goes on up to the last released node.
 
-Public API: `Agv`, `AgvControls`, `OrderPlanner`.
+Recording (`executor.recording`, with a `Recorder`): the whole session in one file. The recorder wraps
+the vehicle once (every leg's runner drives the wrapper) and the camera, follows each leg's runner
+(`attach` / `detach`), ticks with the clock (`TickClock` hook), and takes the session's own events as
+`/log` and `/events` entries: `order_accepted`, `order_rejected`, `message_rejected`, `instant_action`,
+`leg_start`, `leg_end`, `leg_failed`. `finish_recording()` writes the session's `/report/run` (every
+leg's task results, the legs; success when every leg succeeded) and closes the file.
+
+Public API: `Agv` (`run`, `stop`, `connect`, `publisher`, `on_message`, `finish_recording`), `AgvControls`,
+`OrderPlanner`.
 """
 
 from __future__ import annotations
@@ -34,12 +42,14 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.controls import Controls
 from palletpilot.executor.errors import CANCELLED
 from palletpilot.executor.mission import Mission
+from palletpilot.executor.ports import LocalPerception, VehiclePort
+from palletpilot.executor.results import TaskResult
 from palletpilot.executor.runner import Runner
 from palletpilot.executor.vda5050 import validation
 from palletpilot.executor.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
@@ -54,6 +64,9 @@ from palletpilot.executor.vda5050.vehicle import Backend
 from palletpilot.geometry import angle_diff
 from palletpilot.perception.specs import builtin_pallet
 from palletpilot.roadmap import NodeType, Planner, Roadmap, Route
+
+if TYPE_CHECKING:
+    from palletpilot.executor.recording import Recorder
 
 A = ActionStatus
 CHARGER_RADIUS_M = 0.3
@@ -99,7 +112,8 @@ class OrderPlanner(Planner):
 
 
 class Agv:
-    """One VDA 5050 AGV over a vehicle backend (see the module docstring)."""
+    """One VDA 5050 AGV over a vehicle backend (see the module docstring). `recorder`: record the whole
+    session into it (the caller closes it with `finish_recording`)."""
 
     def __init__(
         self,
@@ -108,10 +122,30 @@ class Agv:
         log: Callable[[str], None] = lambda line: None,
         settings: Settings | None = None,
         software_version: str = "",
+        recorder: Recorder | None = None,
     ) -> None:
         cfg = loaded.config
         self.loaded, self.config, self.backend, self.log = loaded, cfg, backend, log
         self.roadmap = loaded.roadmap
+        self.recorder = recorder
+        self.vehicle: VehiclePort = backend.vehicle
+        """What the runners drive and the AGV samples (the recorder's pass-through wrapper when recording)."""
+        self.grab = backend.grab
+        self.results: list[TaskResult] = []
+        """Every leg's task results, in order (the session's `/report/run`)."""
+        self.legs: list[dict[str, Any]] = []
+        """One line per leg run: order, kind, route, outcome, times (s)."""
+        self.session_name = f"vda5050 {cfg.manufacturer}/{cfg.serial_number}"
+        """The recording's name for the session (its `/report/run` mission)."""
+        if recorder is not None:
+            follower, name = backend.follower, self.session_name
+            self.vehicle = recorder.start_session(
+                backend.vehicle, backend.clock.now, backend.params, backend.forks, self.roadmap, follower, name
+            )
+            self.grab = recorder.wrap_grab(backend.grab)
+            perception = backend.perception
+            if isinstance(perception, LocalPerception) and perception.segmenter is not None:
+                perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
         self.orders = OrderManager(loaded.roadmap, cfg.map_name, loaded.vehicle)
         version = hashlib.sha256(loaded.map_path.read_bytes()).hexdigest()[:12]
         headers = Headers(cfg.protocol_version, cfg.manufacturer, cfg.serial_number)
@@ -162,6 +196,24 @@ class Agv:
     def changed(self) -> None:
         """An event: publish the state now (from any thread)."""
         self._wake.set()
+
+    def _note(self, event: str, **data: Any) -> None:
+        """A session event for the recording (any thread; nothing without a recorder)."""
+        if self.recorder is not None:
+            self.recorder.note(event, data)
+
+    def finish_recording(self) -> list[str]:
+        """End the session's recording (after `run` returned): `/report/run` with every leg's results and
+        the legs, then the file finished and the live server stopped. Returns the recorder's error lines
+        (none without a recorder)."""
+        rec = self.recorder
+        if rec is None:
+            return []
+        success = all(leg["ok"] for leg in self.legs)  # a leg cancelled (by the master, at shutdown) did not succeed
+        extra = {"clock": self.backend.clock.stats(), "legs": self.legs}
+        rec.finish_session(self.session_name, success, self.results, extra)
+        rec.close()
+        return list(rec.errors)
 
     def _send(self, name: str, build: Callable[[], dict[str, Any]]) -> None:
         if self.link is None:
@@ -215,6 +267,7 @@ class Agv:
         if doc is None:
             self.orders.malformed(name, why or "unreadable")
             self.log(f"agv: {name}: {why}")
+            self._note("message_rejected", topic=name, why=why)
         elif name == "order":
             self._follow_version(doc)
             self._order(doc)
@@ -243,11 +296,15 @@ class Agv:
     def _order(self, doc: dict[str, Any]) -> None:
         decision = self.orders.receive_order(doc, self.view())
         oid = f"{doc.get('orderId')}/{doc.get('orderUpdateId')}"
+        ids = {"order_id": doc.get("orderId"), "order_update_id": doc.get("orderUpdateId")}
         if decision.accepted:
             self.halted = None
             self.log(f"agv: order {oid} accepted ({decision.kind})")
+            self._note("order_accepted", **ids, kind=decision.kind, nodes=len(doc.get("nodes") or []))
         elif decision.error is not None:
             self.log(f"agv: order {oid} rejected: {decision.error.error_type}: {decision.error.description}")
+            error = decision.error
+            self._note("order_rejected", **ids, error_type=error.error_type, description=error.description)
 
     def _instant(self, doc: dict[str, Any]) -> None:
         for record in self.orders.receive_instant_actions(doc):
@@ -260,6 +317,7 @@ class Agv:
     def _run_instant(self, a: Action) -> None:
         o, t = self.orders, a.action_type
         self.log(f"agv: instant action {t} ({a.action_id})")
+        self._note("instant_action", action_type=t, action_id=a.action_id)
         if t == "startPause":
             self.controls.master_pause = True
             self.controls.refresh()
@@ -357,7 +415,7 @@ class Agv:
             if self.halted is None and not self.controls.master_pause and self._cancel_action is None:
                 leg = self.orders.plan_next()
             if leg is None:
-                self.backend.vehicle.stop()
+                self.vehicle.stop()
                 self.backend.clock.tick()
                 continue
             self._leg(leg)
@@ -387,14 +445,24 @@ class Agv:
             {"name": f"vda5050 {o.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet, "tasks": [task]}
         )
         self.log(f"agv: {leg.kind} {' -> '.join(leg.route)}")
+        line: dict[str, Any] = {
+            "order_id": o.order_id,
+            "order_update_id": o.order_update_id,
+            "kind": leg.kind,
+            "route": list(leg.route),
+            "ok": False,
+            "reason": None,
+            "start_s": round(self.backend.clock.now(), 3),
+        }
+        self._note("leg_start", **{k: line[k] for k in ("order_id", "order_update_id", "kind", "route")})
         self.leg = leg
         with self._speed_limits(leg):
             runner = Runner(
                 mission,
                 self.roadmap,
-                self.backend.vehicle,
+                self.vehicle,
                 self.backend.perception,
-                self.backend.grab,
+                self.grab,
                 self.backend.clock,
                 self.backend.params,
                 self.backend.forks,
@@ -407,12 +475,23 @@ class Agv:
             runner.ctx.heading = self.heading
             runner.ctx.planner = OrderPlanner(self.roadmap, leg.route)
             self.runner = runner
-            ok = runner.run()
+            if self.recorder is not None:
+                self.recorder.attach(runner)
+            try:
+                ok = runner.run()
+            finally:
+                if self.recorder is not None:
+                    self.recorder.detach()
         self.runner, self.leg = None, None
         self.heading = runner.ctx.heading
         self.controls.gate = None
         self.controls.refresh()
         result = runner.results[-1] if runner.results else None
+        self.results.extend(runner.results)
+        line.update(ok=ok, reason=None if ok else (result.reason if result else None) or "internal_error")
+        line["end_s"] = round(self.backend.clock.now(), 3)
+        self.legs.append(line)
+        self._note("leg_end" if ok or line["reason"] == CANCELLED else "leg_failed", **line)
         if ok:
             if leg.kind == "move":
                 for node in leg.route[1:]:
@@ -531,7 +610,7 @@ class Agv:
 
     # -- every tick (executor thread) ----------------------------------------------------------------
     def _sample(self) -> Snapshot:
-        v = self.backend.vehicle
+        v = self.vehicle
         pose = v.localization()
         safety = v.safety_state()
         snap = Snapshot(
@@ -550,6 +629,8 @@ class Agv:
         return snap
 
     def _on_tick(self) -> None:
+        if self.recorder is not None:
+            self.recorder.tick()  # what the truck read this tick, before it is sampled anew
         before = self.snapshot
         snap = self._sample()
         self.distance += abs(snap.speed) * self.backend.clock.dt

@@ -1,11 +1,20 @@
 """`palletpilot agv`: run as one AGV of a fleet, orders from a VDA 5050 master over MQTT (wired in by `executor.cli`).
 
 `palletpilot agv --config agv.yaml (--sim SCENARIO | --robot robot.yaml) [--labels model|truth] [--seed N]
-[--quiet]` checks the config file (and the map, vehicle, TLS files it names) and the scenario first: a problem
-is one line on stderr and exit 2. Then it connects to the broker (retrying with backoff until it gets through),
-prints one line on stdout, `agv ready: <interface>/v2/<manufacturer>/<serial>/ (simulated scenario ...)`, and
-runs until SIGINT or SIGTERM: the truck stops, `connection` goes OFFLINE, and it exits 0. Progress (connection,
-orders accepted or rejected, legs, failures) goes to stderr unless `--quiet`.
+[--report DIR] [--foxglove [PORT]] [--foxglove-host HOST] [--quiet]` checks the config file (and the map,
+vehicle, TLS files it names) and the scenario first: a problem is one line on stderr and exit 2. Then it
+connects to the broker (retrying with backoff until it gets through), prints one line on stdout,
+`agv ready: <interface>/v2/<manufacturer>/<serial>/ (simulated scenario ...)`, and runs until SIGINT or
+SIGTERM: the truck stops, `connection` goes OFFLINE, and it exits 0. Progress (connection, orders accepted
+or rejected, legs, failures) goes to stderr unless `--quiet`.
+
+The whole session is recorded to `DIR/run.mcap` (default `out/agv/<serialNumber>`, so AGVs started side by
+side on one machine keep their own files): `executor.recording`, the channels of `palletpilot run` over
+every leg, orders and legs on `/log` and `/events`; finished when the AGV stops, flushed every `FLUSH_S`
+seconds so a crash loses little. `--foxglove` also serves it live. A file that cannot be written is one
+line on stderr, and the AGV drives on without it. `palletpilot replay DIR/run.mcap --report R` gives the
+session's report (every leg's task) once the AGV has stopped cleanly; it refuses, in one line, the file of
+a killed AGV (no summary, no `/report/run`), whose flushed chunks a streaming MCAP reader still reads.
 
 `--sim SCENARIO` drives the simulated warehouse of a scenario in real time (its map must be the config's);
 `--robot robot.yaml` needs the ROS 2 adapter (`palletpilot.executor.ros`) and says so when it is missing.
@@ -18,9 +27,14 @@ import signal
 import sys
 import threading
 from importlib import metadata
+from pathlib import Path
 from types import FrameType
 
-from palletpilot.executor.cli_args import seed
+from palletpilot.executor.cli_args import out_folder, seed
+from palletpilot.executor.recording_channels import add_foxglove_argument
+
+FLUSH_S = 5.0
+"""The session's recording finishes its current chunk at least this often (wall seconds)."""
 
 
 def _version() -> str:
@@ -32,12 +46,14 @@ def _version() -> str:
 
 def cmd_agv(args: argparse.Namespace) -> int:
     """Check the inputs, connect, drive until SIGINT / SIGTERM, then go OFFLINE."""
+    from palletpilot.executor.recording import Recorder, start_recording
     from palletpilot.executor.vda5050.agv import Agv
     from palletpilot.executor.vda5050.config import load_config
     from palletpilot.executor.vda5050.vehicle import robot_backend, sim_backend
 
     stop = threading.Event()
     agv: Agv | None = None
+    recorder: Recorder | None = None
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         stop.set()
@@ -52,6 +68,13 @@ def cmd_agv(args: argparse.Namespace) -> int:
             backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed)
         else:
             backend = robot_backend(loaded, args.robot)
+        try:
+            folder = Path(args.report) if args.report else Path("out/agv") / loaded.config.serial_number
+            folder.mkdir(parents=True, exist_ok=True)
+            recorder = start_recording(folder, args.foxglove, wall=True, host=args.foxglove_host, flush_s=FLUSH_S)
+        except BaseException:  # RecordingError: the port is taken
+            backend.close()
+            raise
     except BaseException:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -61,7 +84,12 @@ def cmd_agv(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(line, file=sys.stderr, flush=True)
 
-    agv = Agv(loaded, backend, log=log, software_version=_version())
+    assert recorder is not None  # a report folder always
+    for line in recorder.errors:
+        print(f"agv: {line}", file=sys.stderr, flush=True)
+    if recorder.port is not None:
+        log(f"foxglove: live on ws://{args.foxglove_host}:{recorder.port}")
+    agv = Agv(loaded, backend, log=log, software_version=_version(), recorder=recorder)
     link = agv.connect()
     if stop.is_set():
         agv.stop()
@@ -75,12 +103,17 @@ def cmd_agv(args: argparse.Namespace) -> int:
     finally:
         stop.set()
         agv.stop()
-        publisher.join(timeout=2.0)
-        agv.publish_state()
-        link.close()
-        backend.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        try:
+            reported = len(recorder.errors)
+            for line in agv.finish_recording()[reported:]:  # run.mcap finished, the live port freed
+                print(f"agv: {line}", file=sys.stderr, flush=True)
+            publisher.join(timeout=2.0)
+            agv.publish_state()
+            link.close()
+        finally:
+            backend.close()
+            for s, handler in previous.items():
+                signal.signal(s, handler)
     log("agv: stopped (connection OFFLINE)")
     return 0
 
@@ -99,5 +132,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="--sim: perception segments the RGB with the shipped model (default) or takes the simulator's labels",
     )
     p.add_argument("--seed", type=seed, help="--sim: override the scenario's seed")
+    p.add_argument(
+        "--report",
+        type=out_folder,
+        metavar="DIR",
+        help="folder for the session's recording run.mcap (default out/agv/SERIAL)",
+    )
+    add_foxglove_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=cmd_agv)
