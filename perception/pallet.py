@@ -443,9 +443,10 @@ def _refit_face(
     margin = cfg.face_margin_px * footprint + cfg.face_margin_m
     on_face = model.solid(fc.s - s0, fc.h - z0, margin, margin)
     res = fc.w - fc.nd / fc.D
-    on_face &= ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
     if cargo is not None:  # a load or stretch film in front of the face (an overhang) is not the face
         on_face &= ~cargo
+    solid = on_face
+    on_face = solid & ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
     # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
     # the forklift origin, so a new plane (another yaw) needs it re-expressed, or the pallet model
     # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
@@ -457,6 +458,9 @@ def _refit_face(
         plane = _fit_plane(all_rays.d[use], all_rays.w[use], sigma)
         res = all_rays.w - plane.predict(all_rays.d)
         sigma = _robust_sigma(res[use], cfg.min_sigma_w)
+        # A missing part that the first plane leaned towards shows more clearly behind the refitted one.
+        on_face = solid & ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
+        use = on_face & (np.abs(res) < trunc * sigma)
     plane = _fit_plane(all_rays.d[use], all_rays.w[use], sigma)
     s0 = float(plane.e @ centre)
     return plane, s0, sigma, use
@@ -486,8 +490,9 @@ def _recessed(
     z_mid = 0.5 * (max(model.bottom_top, model.pocket_floor) + model.block_top)
     for lo, hi in model.columns:
         y_mid = 0.5 * (lo + hi)
+        low = max(model.bottom_top, model.pocket_floor)
         for y0, y1 in ((lo, y_mid), (y_mid, hi)):
-            cells += [(y0, y1, max(model.bottom_top, model.pocket_floor), z_mid), (y0, y1, z_mid, model.block_top)]
+            cells += [(y0, y1, low, z_mid), (y0, y1, z_mid, model.block_top), (y0, y1, low, model.block_top)]
     depth = cfg.missing_board_depth_m
     behind = depth / (fc.D * (fc.D + depth))  # in inverse depth
     for y0, y1, z0_, z1_ in cells:
@@ -497,7 +502,10 @@ def _recessed(
             continue
         med = float(np.median(res[m]))
         if med < -behind and med < -3.0 * 1.25 * sigma / np.sqrt(n):
-            out |= m
+            # The whole cell and a margin around it: its edges now border a hole (flying pixels, rays
+            # that pass the missing part's edge and end on the floor behind it).
+            g = 2.0 * margin
+            out |= (s_rel >= y0 - g) & (s_rel <= y1 + g) & (h_rel >= z0_ - g) & (h_rel <= z1_ + g)
     return out
 
 
