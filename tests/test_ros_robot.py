@@ -141,6 +141,9 @@ def test_pickup_and_delivery_over_ros2(tmp_path: Path, dds_env: dict[str, str]) 
         replayed = json.loads(replay(report / "run.mcap", tmp_path / "replayed").read_text())
         assert [t["result"] for t in replayed["tasks"]] == ["succeeded", "succeeded"]
         assert replayed["robot"] == "truck" and replayed["clock"]["ticks"] == doc["clock"]["ticks"]
+    log = (tmp_path / "serve.log").read_text().splitlines()
+    stats = json.loads(next(line for line in reversed(log) if line.startswith('{"stand_in"')))["stand_in"]
+    assert stats["frames"] > 0 and stats["camera_error"] is None  # the camera child rendered and published
 
 
 def test_robot_killed_mid_drive_truck_brakes(tmp_path: Path, dds_env: dict[str, str]) -> None:

@@ -8,9 +8,13 @@
   safety state has a fault, the camera gives no frame, the calibration is stale, or the truck stands on
   no node. Exit codes as `palletpilot run`: 0 success, 1 the mission failed (the truck stopped), 3 the
   report could not be written, 128 + N cancelled by signal N (SIGINT, SIGTERM: the truck stops first).
-- `palletpilot sim serve SCENARIO --ros [--robot robot.yaml] [--seed N] [--camera-hz HZ]`: the simulator as a
-  stand-in truck on the robot file's topics (`executor.ros.standin`); prints one ready line on stdout,
-  serves until SIGINT or SIGTERM, then prints its statistics (JSON) on stderr and exits 0.
+- `palletpilot sim serve SCENARIO --ros [--robot robot.yaml] [--seed N] [--camera-hz HZ] [--foxglove [PORT]]
+  [--foxglove-host HOST]`: the simulator as a stand-in truck on the robot file's topics
+  (`executor.ros.standin`; its camera renders in a child process, `executor.ros.standin_camera`); prints
+  one ready line on stdout, serves until SIGINT or SIGTERM, then prints its statistics (JSON) on stderr
+  and exits 0. `--foxglove` also serves the simulated truth live over Foxglove WebSocket
+  (`executor.ros.standin_foxglove`: the channels of `run --foxglove` that the truth feeds) and says where
+  in one line on stderr (`foxglove: live on ws://HOST:PORT`); a port that cannot be served: exit 2.
 - `static_tf_text(calibration)`: the `base_link -> camera_color_optical_frame` transform for ROS users, as
   a `static_transform_publisher` line and a tf2 YAML snippet (`calibrate --ros-static-tf [FILE]`).
 
@@ -28,17 +32,13 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 from palletpilot.executor.cli_args import number, out_file, out_folder, seed
+from palletpilot.executor.cli_outcome import EXIT_BAD_INPUT, EXIT_OK, mission_outcome
 from palletpilot.executor.recording_channels import add_foxglove_argument
 from palletpilot.geometry import PalletpilotError
 from palletpilot.geometry.fileio import bundled_path, write_atomic
 
 if TYPE_CHECKING:
     from palletpilot.perception.calibration_io import Calibration
-
-EXIT_OK = 0
-EXIT_FAILED = 1
-EXIT_BAD_INPUT = 2
-EXIT_WRITE_FAILED = 3
 
 
 # -- calibrate --ros-static-tf ------------------------------------------------------------------------------
@@ -132,27 +132,8 @@ def cmd_robot(args: argparse.Namespace) -> int:
         foxglove=args.foxglove,
         foxglove_host=args.foxglove_host,
     )
-    if args.json:
-        print(json.dumps(result.summary, indent=2))
-    else:
-        for task in result.summary["tasks"]:
-            why = f" ({task['reason']})" if task["reason"] else ""
-            print(f"{task['type']:9s} {task['node'] or '':14s} {task['result']}{why}, {task['attempts']} estimate(s)")
-        where = f"; report in {result.report.parent}/" if result.report is not None else ""
-        print(f"mission {'succeeded' if result.success else 'FAILED'}{where}")
-    for line in result.write_errors:
-        print(f"error: {line}", file=sys.stderr)
-    if result.success:
-        return EXIT_WRITE_FAILED if result.write_errors else EXIT_OK
-    failed = next((t for t in result.runner.results if t.result != "succeeded"), None)
-    if failed is not None:
-        print(
-            f"mission failed: task {failed.index} ({failed.type}): {failed.reason}: {failed.message}; truck stopped",
-            file=sys.stderr,
-        )
-    if CONTROLS.cancel_signal is not None:
-        return 128 + CONTROLS.cancel_signal
-    return EXIT_FAILED
+    report = result.report.parent if result.report is not None else None
+    return mission_outcome(result, report, args.json, CONTROLS, "truck")
 
 
 def _endpoint(text: str) -> str:
@@ -215,8 +196,15 @@ def cmd_sim_serve(args: argparse.Namespace) -> int:
         raise_problems(problems)
         assert config is not None and scenario is not None
         sim = Simulator(scenario, seed=args.seed)
-        transport = open_transport(config.transport, config.domain_id)
+        view = None
+        if args.foxglove is not None:
+            from palletpilot.executor.ros.standin_foxglove import StandInView
+
+            view = StandInView(sim, args.foxglove, args.foxglove_host)  # a port it cannot serve: exit 2
+        transport = None
+        standin = None
         try:
+            transport = open_transport(config.transport, config.domain_id)
             standin = StandIn(sim, config, transport, camera_hz=args.camera_hz)
             domain = getattr(transport, "domain_id", "ROS_DOMAIN_ID")
             print(
@@ -224,10 +212,19 @@ def cmd_sim_serve(args: argparse.Namespace) -> int:
                 f"{len(standin.topics())} topics out, command timeout {config.command_timeout_s:g} s",
                 flush=True,
             )
-            standin.run(stop)
+            if view is not None:
+                print(f"foxglove: live on ws://{args.foxglove_host}:{view.port}", file=sys.stderr, flush=True)
+            standin.run(stop, on_tick=None if view is None else view.tick)
             print(json.dumps({"stand_in": standin.stats()}), file=sys.stderr, flush=True)
         finally:
-            transport.close()
+            if standin is not None:
+                standin.close()
+            if view is not None:
+                view.close()
+                for line in view.errors:
+                    print(f"error: {line}", file=sys.stderr)
+            if transport is not None:
+                transport.close()
         return EXIT_OK
     finally:
         for s, handler in previous.items():
@@ -244,4 +241,5 @@ def add_sim_serve(sim_subparsers: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--camera-hz", type=number(0.0, 30.0, "Hz"), help="camera frames per second (default: the robot file's)"
     )
+    add_foxglove_argument(s)
     s.set_defaults(func=cmd_sim_serve)

@@ -9,8 +9,11 @@ tested end to end without hardware:
   fork-tip beams (`sensor_msgs/Range`, +inf when nothing is within 4 m), the load sensor and the safety
   diagnostics (status `safety`: `estop`, `protective_field`, `warning_field`, `speed_limit`, `field_set`,
   `direction`, `intrusions`; ERROR on a collision or a latched emergency stop); the camera (colour
-  `rgb8`, depth aligned to it `16UC1` in mm, `camera_info`) at `camera.rate_hz` (a frame renders in
-  about 40 ms);
+  `rgb8`, depth aligned to it `16UC1` in mm, `camera_info`) at `camera.rate_hz`, rendered and published
+  by a child process (`executor.ros.standin_camera`: a frame takes about 40 ms of ray casting that, in
+  this process, held the GIL and delayed the receipt of drive commands by up to a frame); each frame is
+  what `sim.grab()` would give for the truck's state when it was requested, and the child's first frame
+  comes a few seconds after the start (its own interpreter and world);
 - subscribes the drive command (`AckermannDriveStamped`: speed m/s, steering angle rad), the fork
   height target, the field set and the emergency stop;
 - behaves like a truck controller with a command timeout: when no drive command came for
@@ -19,26 +22,40 @@ tested end to end without hardware:
   emergency stop (`true` on its topic) latches until the executor has stopped commanding and the truck
   stands (the run ended), as a reset on the safety PLC would.
 
-Stops cleanly when `stop` is set (the CLI's SIGINT / SIGTERM). `stats()` gives the ticks, the command
-latency (header stamp to receipt, ms: p50 / p99 / max), the timeout brakes and emergency stops.
+Stops cleanly when `stop` is set (the CLI's SIGINT / SIGTERM), and ends the camera child with it (the
+child also dies on its own when this process dies in any way: `CameraProcess`). `stats()` gives the ticks,
+the command latency (header stamp to receipt, ms: p50 / p99 / max; over Cyclone DDS also split at the
+sender's DDS write, from the sample's source timestamp), the timeout brakes and emergency stops, the
+camera frames with their render time (ms, in the child) and the camera child's failure, if any.
+While it runs, the interpreter's thread switch interval is `GIL_SWITCH_S` (1 ms), so that the transport's
+receive thread waits at most that long for the loop's Python work. `run(stop, on_tick)` calls
+`on_tick(stand_in)` once per control tick (the live view of
+`executor.ros.standin_foxglove`); `last_ranges` and `command_speed` are there for it.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from palletpilot.executor.ros import messages as msgs
-from palletpilot.executor.ros.camera import camera_info, depth_image, rgb_image
 from palletpilot.executor.ros.config import RobotConfig
+from palletpilot.executor.ros.standin_camera import CameraProcess, camera_messages, camera_state
 from palletpilot.executor.ros.transport import Transport
 from palletpilot.geometry import SE2
 from palletpilot.sim.simulator import BEAM_MAX_RANGE_M, Simulator
+
+GIL_SWITCH_S = 0.001
+"""The interpreter's thread switch interval while the stand-in runs (s; Python's default is 5 ms): a drive
+command arriving while the loop steps and publishes (a few ms of Python per tick) waits at most this long
+for the GIL on the transport's receive thread."""
 
 
 @dataclass
@@ -55,6 +72,8 @@ class StandInStats:
     ticks: int = 0
     commands: int = 0
     latency_ms: list[float] = field(default_factory=list)
+    sender_ms: list[float] = field(default_factory=list)  # header stamp to the sender's DDS write (Cyclone DDS)
+    transit_ms: list[float] = field(default_factory=list)  # the sender's DDS write to the receipt here
     timeout_brakes: list[float] = field(default_factory=list)  # time.time() of each brake start
     emergency_stops: int = 0
     frames: int = 0
@@ -75,8 +94,20 @@ class StandIn:
     """A simulated truck on the robot file's topics (module docstring)."""
 
     def __init__(
-        self, sim: Simulator, config: RobotConfig, transport: Transport, camera_hz: float | None = None
+        self,
+        sim: Simulator,
+        config: RobotConfig,
+        transport: Transport,
+        camera_hz: float | None = None,
+        camera_publisher: Literal["child", "stand-in"] = "child",
     ) -> None:
+        """Subscribe the commands, advertise the outputs and start the camera child (when the robot file's
+        camera is `ros` and `camera_hz` (Hz; default the robot file's `camera.rate_hz`) is above 0).
+
+        `camera_publisher`: `child` (the camera child publishes the frames on its own transport of the robot
+        file's kind and domain) or `stand-in` (it hands them back and they go out on `transport`: for an
+        in-process transport such as `MemoryTransport`).
+        """
         self.sim = sim
         self.config = config
         self.transport = transport
@@ -91,6 +122,7 @@ class StandIn:
         self.estop_latched = False
         self.timeout_brake = True  # no command yet: the truck holds
         self.stats_ = StandInStats()
+        self.last_ranges: tuple[float, float] | None = None  # the fork-tip beams last published (m)
         t = config.topics
         transport.subscribe(t.drive.name, msgs.AckermannDriveStamped, t.drive.qos.spec(), self._on_drive)
         transport.subscribe(t.fork_height.name, msgs.Float64, t.fork_height.qos.spec(), self._on_fork)
@@ -98,15 +130,29 @@ class StandIn:
         transport.subscribe(t.field_set.name, msgs.String, t.field_set.qos.spec(), self._on_field_set)
         self._outputs = self._advertise()
         self._range_type = msgs.range_type(config.ros_distro)
+        self.camera: CameraProcess | None = None
+        self._frame_stamp_s = 0.0  # wall-clock time (s) of the state of the frame in flight
+        self._camera_error_told = False
+        if self.camera_hz > 0 and "color" in self._outputs:
+            self.camera = CameraProcess(sim.scenario, sim.seed, config, publish=camera_publisher == "child")
 
     # -- subscriptions (the transport's receive thread: store only) ---------------------------------------
     def _on_drive(self, msg: msgs.AckermannDriveStamped, received_s: float) -> None:
-        latency_ms = (time.time() - msgs.seconds(msg.header.stamp)) * 1e3
+        now = time.time()
+        stamp = msgs.seconds(msg.header.stamp)
+        # Cyclone DDS samples carry the writer's source timestamp (ns since the epoch, taken in its write
+        # call): it splits the latency into the sender's part and the transport's plus ours.
+        info = getattr(msg, "sample_info", None)
+        written = None if info is None else getattr(info, "source_timestamp", None)
         with self._lock:
             self._cmd = _Command(float(msg.drive.speed), float(msg.drive.steering_angle), received_s)
-            self.stats_.commands += 1
-            if len(self.stats_.latency_ms) < 1_000_000:
-                self.stats_.latency_ms.append(latency_ms)
+            s = self.stats_
+            s.commands += 1
+            if len(s.latency_ms) < 1_000_000:
+                s.latency_ms.append((now - stamp) * 1e3)
+                if isinstance(written, int) and written > 0:
+                    s.sender_ms.append((written * 1e-9 - stamp) * 1e3)
+                    s.transit_ms.append((now - written * 1e-9) * 1e3)
 
     def _on_fork(self, msg: msgs.Float64, _received_s: float) -> None:
         self._fork_target = float(msg.data)
@@ -139,6 +185,12 @@ class StandIn:
             }
         return outputs
 
+    @property
+    def command_speed(self) -> float:
+        """The speed (m/s) of the last drive command received (0 before the first)."""
+        with self._lock:
+            return self._cmd.speed
+
     def topics(self) -> list[str]:
         """The topics it publishes."""
         return [name for name, _ in self._outputs.values()]
@@ -148,8 +200,25 @@ class StandIn:
         self.transport.publish(name, msg, qos)
 
     # -- the loop -----------------------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> StandInStats:
-        """Step and publish at the control rate until `stop` is set; returns the statistics."""
+    def run(self, stop: threading.Event, on_tick: Callable[[StandIn], None] | None = None) -> StandInStats:
+        """Step and publish at the control rate until `stop` is set, then end the camera child; returns the
+        statistics. `on_tick(self)` runs once per control tick, after the state is published (the live
+        view, `executor.ros.standin_foxglove`)."""
+        interval = sys.getswitchinterval()
+        sys.setswitchinterval(min(interval, GIL_SWITCH_S))  # the receive thread waits <= 1 ms for the loop
+        try:
+            return self._loop(stop, on_tick)
+        finally:
+            sys.setswitchinterval(interval)
+            self.close()
+
+    def close(self) -> None:
+        """End the camera child (harmless when there is none or it ended already)."""
+        if self.camera is not None:
+            self.camera.close()
+            self._take_frames()
+
+    def _loop(self, stop: threading.Event, on_tick: Callable[[StandIn], None] | None) -> StandInStats:
         dt = self.config.control_dt
         last_step = time.monotonic()
         next_tick = last_step
@@ -170,9 +239,12 @@ class StandIn:
             self._publish_state()
             if now >= next_tick:
                 self.stats_.ticks += 1
+                if on_tick is not None:
+                    on_tick(self)
                 next_tick = max(next_tick + dt, now - dt)  # no burst of catch-up ticks after a stall
-            if self.camera_hz > 0 and "color" in self._outputs and now >= next_frame:
-                self._publish_frame()
+            self._take_frames()
+            if self.camera is not None and self.camera.idle and now >= next_frame:
+                self._request_frame()
                 next_frame = max(next_frame + 1.0 / self.camera_hz, time.monotonic() - 0.5 / self.camera_hz)
         return self.stats_
 
@@ -243,6 +315,7 @@ class StandIn:
             ),
         )
         left, right = sim.proximity_ranges()
+        self.last_ranges = (left, right)
         for key, value in (("beam_left", left), ("beam_right", right)):
             beam = self._range_type(
                 header=self._header(f.base_link, t),
@@ -286,25 +359,41 @@ class StandIn:
             values=[msgs.KeyValue(k, v) for k, v in values.items()],
         )
 
-    def _publish_frame(self) -> None:
-        frame = self.sim.grab()
-        header = self._header(self.config.frames.camera, time.time())
-        if frame.rgb is not None:
-            self._publish("color", rgb_image(frame.rgb, header))
-        self._publish("depth", depth_image(frame.depth, header))
-        self._publish("info", camera_info(frame.K, frame.width, frame.height, header))
-        self.stats_.frames += 1
+    def _request_frame(self) -> None:
+        """Hand the truck's state now to the camera child (a few hundred bytes; it renders and publishes)."""
+        assert self.camera is not None
+        state = camera_state(self.sim)
+        self._frame_stamp_s = state.stamp_s
+        self.camera.request(state)
+
+    def _take_frames(self) -> None:
+        """Collect the camera child's replies: count frames, publish those handed back, tell a failure once."""
+        if self.camera is None:
+            return
+        for frame in self.camera.poll():
+            for topic, msg, qos in camera_messages(frame, self.config, self._frame_stamp_s):
+                self.transport.publish(topic, msg, qos)
+        self.stats_.frames = self.camera.frames
+        if self.camera.error is not None and not self._camera_error_told:
+            self._camera_error_told = True
+            print(f"sim serve: no more camera frames: {self.camera.error}", file=sys.stderr, flush=True)
 
     def stats(self) -> dict[str, Any]:
-        """Ticks, commands, command latency (ms), timeout brakes and emergency stops, camera frames."""
+        """Ticks, commands, command latency (ms) and its split (Cyclone DDS only: the drive command's header
+        stamp to the sender's DDS write, the sender's process; that write to the receipt here, the transport
+        and this process), timeout brakes and emergency stops, camera frames and their render time in the
+        child (ms), the camera child's failure (one line) or None."""
         s = self.stats_
         with self._lock:
-            latency = list(s.latency_ms)
+            latency, sender, transit = list(s.latency_ms), list(s.sender_ms), list(s.transit_ms)
         return {
             "ticks": s.ticks,
             "commands": s.commands,
             "command_latency_ms": _pct(latency),
+            "command_latency_split_ms": {"stamp_to_dds_write": _pct(sender), "dds_write_to_receipt": _pct(transit)},
             "timeout_brakes": len(s.timeout_brakes),
             "emergency_stops": s.emergency_stops,
             "frames": s.frames,
+            "frame_render_ms": _pct(list(self.camera.render_ms) if self.camera is not None else []),
+            "camera_error": self.camera.error if self.camera is not None else None,
         }
