@@ -420,6 +420,14 @@ def _underside(
     return z0
 
 
+MAX_GONE = 0.3
+"""Share of the modelled face's pixels that `_recessed` may take out (a missing board and three chipped
+blocks of a EUR pallet are about a fifth of it)."""
+RECESS_SIGMAS = 4.0
+"""How many standard errors of its median a cell must lie behind the face to count as missing (some
+twenty cells are tested, twice: 3 would take out a sound part of the face in about one frame in ten)."""
+
+
 def _refit_face(
     model: _Model,
     fc: _FaceCoords,
@@ -433,34 +441,40 @@ def _refit_face(
     cfg: PalletEstimatorConfig,
     cargo: np.ndarray | None = None,
 ) -> tuple[_Plane, float, float, np.ndarray]:
-    """Step 3: the plane refitted on the pixels the model puts on the solid face (bottom boards that
-    are missing, `_missing_bottom_boards`, left out).
+    """Step 3: the plane refitted on the pixels the model puts on the solid face (parts of it that are
+    missing, `_recessed`, and a load in front of it left out).
 
     Returns the plane, the lateral centre re-expressed on it, the inverse-depth noise and the mask of
     the pixels fitted.
     """
     trunc = cfg.truncation_sigma
     margin = cfg.face_margin_px * footprint + cfg.face_margin_m
-    on_face = model.solid(fc.s - s0, fc.h - z0, margin, margin)
-    res = fc.w - fc.nd / fc.D
+    solid = model.solid(fc.s - s0, fc.h - z0, margin, margin)
     if cargo is not None:  # a load or stretch film in front of the face (an overhang) is not the face
-        on_face &= ~cargo
-    solid = on_face
-    on_face = solid & ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
+        solid &= ~cargo
+    res = fc.w - fc.nd / fc.D
+    gone = np.zeros(len(fc.s), bool)
     # The lateral centre as a point on the face: `s` is measured along the plane's lateral axis from
     # the forklift origin, so a new plane (another yaw) needs it re-expressed, or the pallet model
     # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
     centre = plane.point(cam, s0)
-    for _ in range(3):
-        use = on_face & (np.abs(res) < trunc * sigma)
+    n_solid = np.count_nonzero(solid)
+    for round_ in range(3):
+        if round_ < 2:
+            # Cells found missing stay out: each is tested against the plane of the rest of the face, in
+            # two passes (the second without the first's). A damaged pallet misses a few parts, never
+            # most of its face: more than `MAX_GONE` of it means a poor plane, not damage.
+            usable = solid & ~gone & (np.abs(res) < trunc * sigma)
+            more = gone | _recessed(model, fc, all_rays, usable, s0, z0, margin, sigma, cfg)
+            if np.count_nonzero(solid & more) <= MAX_GONE * n_solid:
+                gone = more
+        use = solid & ~gone & (np.abs(res) < trunc * sigma)
         if use.sum() < cfg.min_face_pixels:
             raise PalletNotFound("no_entry_face", f"only {int(use.sum())} pixels on the modelled entry face")
         plane = _fit_plane(all_rays.d[use], all_rays.w[use], sigma)
         res = all_rays.w - plane.predict(all_rays.d)
         sigma = _robust_sigma(res[use], cfg.min_sigma_w)
-        # A missing part that the first plane leaned towards shows more clearly behind the refitted one.
-        on_face = solid & ~_recessed(model, fc, res, s0, z0, margin, sigma, cfg)
-        use = on_face & (np.abs(res) < trunc * sigma)
+    use = solid & ~gone & (np.abs(res) < trunc * sigma)
     plane = _fit_plane(all_rays.d[use], all_rays.w[use], sigma)
     s0 = float(plane.e @ centre)
     return plane, s0, sigma, use
@@ -469,7 +483,8 @@ def _refit_face(
 def _recessed(
     model: _Model,
     fc: _FaceCoords,
-    res: np.ndarray,
+    rays: _Rays,
+    usable: np.ndarray,
     s0: float,
     z0: float,
     margin: float,
@@ -478,34 +493,44 @@ def _recessed(
 ) -> np.ndarray:
     """Pixels of the modelled face that are not there (a damaged pallet): their rays end well behind it.
 
-    Cells of the face are tested one by one: each bottom board, and each block face in quarters
-    (left and right half, lower and upper half). A cell is gone (a missing bottom board, a chipped
-    block's corner or edge) where the median of its pixels' inverse-depth residuals lies clearly (3
-    standard errors) and at least `cfg.missing_board_depth_m` behind the face; its pixels are then
-    no evidence of the face.
+    Cells of the face are tested one by one: each bottom board, and each half of a block face (left
+    and right) in its lower half, its upper half and whole (a chipped corner, a chipped vertical edge).
+    A cell is gone where the median inverse-depth residual of its pixels, against the plane fitted to
+    the `usable` pixels outside it (so that the missing part cannot tilt the plane towards itself), lies
+    clearly (`RECESS_SIGMAS` standard errors) and at least `cfg.missing_board_depth_m` behind the face. Then the cell
+    and a margin around it are no evidence of the face: its edges border a hole (flying pixels, rays
+    that pass the missing part's edge and end on the floor behind it).
     """
     out = np.zeros(len(fc.s), bool)
     s_rel, h_rel = fc.s - s0, fc.h - z0
     cells = [(lo, hi, 0.0, model.bottom_top) for lo, hi in model.bottom_segments()]
-    z_mid = 0.5 * (max(model.bottom_top, model.pocket_floor) + model.block_top)
+    low = max(model.bottom_top, model.pocket_floor)
+    z_mid = 0.5 * (low + model.block_top)
     for lo, hi in model.columns:
         y_mid = 0.5 * (lo + hi)
-        low = max(model.bottom_top, model.pocket_floor)
         for y0, y1 in ((lo, y_mid), (y_mid, hi)):
             cells += [(y0, y1, low, z_mid), (y0, y1, z_mid, model.block_top), (y0, y1, low, model.block_top)]
+    # Normal equations of the plane fit (`_fit_plane`) over the usable pixels, a cell's own taken out below.
+    x, y, w = rays.d[:, 0], rays.d[:, 1], rays.w
+    terms = np.stack([x * x, x * y, y * y, x * w, y * w], axis=1)
+    total = terms[usable].sum(axis=0)
     depth = cfg.missing_board_depth_m
     behind = depth / (fc.D * (fc.D + depth))  # in inverse depth
+    g = 2.0 * margin
     for y0, y1, z0_, z1_ in cells:
         m = (s_rel >= y0 + margin) & (s_rel <= y1 - margin) & (h_rel >= z0_ + margin) & (h_rel <= z1_ - margin)
         n = int(m.sum())
         if n < 5:
             continue
-        med = float(np.median(res[m]))
-        if med < -behind and med < -3.0 * 1.25 * sigma / np.sqrt(n):
-            # The whole cell and a margin around it: its edges now border a hole (flying pixels, rays
-            # that pass the missing part's edge and end on the floor behind it).
-            g = 2.0 * margin
-            out |= (s_rel >= y0 - g) & (s_rel <= y1 + g) & (h_rel >= z0_ - g) & (h_rel <= z1_ + g)
+        grown = (s_rel >= y0 - g) & (s_rel <= y1 + g) & (h_rel >= z0_ - g) & (h_rel <= z1_ + g)
+        sxx, sxy, syy, sxw, syw = total - terms[usable & grown].sum(axis=0)
+        det = sxx * syy - sxy * sxy
+        if det <= 0.0:
+            continue
+        A, B = (syy * sxw - sxy * syw) / det, (sxx * syw - sxy * sxw) / det
+        med = float(np.median(w[m] - (A * x[m] + B * y[m])))
+        if med < -behind and med < -RECESS_SIGMAS * 1.25 * sigma / np.sqrt(n):
+            out |= grown
     return out
 
 
