@@ -459,13 +459,14 @@ def _refit_face(
     # slides sideways by D * (change of yaw) (11 cm for 1.6 deg at 4 m).
     centre = plane.point(cam, s0)
     n_solid = np.count_nonzero(solid)
+    cells = _face_cells(model, fc, all_rays, s0, z0, margin)
     for round_ in range(3):
         if round_ < 2:
             # Cells found missing stay out: each is tested against the plane of the rest of the face, in
             # two passes (the second without the first's). A damaged pallet misses a few parts, never
             # most of its face: more than `MAX_GONE` of it means a poor plane, not damage.
             usable = solid & ~gone & (np.abs(res) < trunc * sigma)
-            more = gone | _recessed(model, fc, all_rays, usable, s0, z0, margin, sigma, cfg)
+            more = gone | _recessed(cells, all_rays, usable, fc.D, sigma, cfg)
             if np.count_nonzero(solid & more) <= MAX_GONE * n_solid:
                 gone = more
         use = solid & ~gone & (np.abs(res) < trunc * sigma)
@@ -480,57 +481,73 @@ def _refit_face(
     return plane, s0, sigma, use
 
 
-def _recessed(
-    model: _Model,
-    fc: _FaceCoords,
-    rays: _Rays,
-    usable: np.ndarray,
-    s0: float,
-    z0: float,
-    margin: float,
-    sigma: float,
-    cfg: PalletEstimatorConfig,
-) -> np.ndarray:
-    """Pixels of the modelled face that are not there (a damaged pallet): their rays end well behind it.
+class _FaceCells(NamedTuple):
+    """The cells of the modelled face that `_recessed` tests, as pixel indices, and the pixels' terms of
+    the plane fit's normal equations."""
 
-    Cells of the face are tested one by one: each bottom board, and each half of a block face (left
-    and right) in its lower half, its upper half and whole (a chipped corner, a chipped vertical edge).
-    A cell is gone where the median inverse-depth residual of its pixels, against the plane fitted to
-    the `usable` pixels outside it (so that the missing part cannot tilt the plane towards itself), lies
-    clearly (`RECESS_SIGMAS` standard errors) and at least `cfg.missing_board_depth_m` behind the face. Then the cell
-    and a margin around it are no evidence of the face: its edges border a hole (flying pixels, rays
-    that pass the missing part's edge and end on the floor behind it).
-    """
-    out = np.zeros(len(fc.s), bool)
+    inner: list[np.ndarray]  # per cell: its pixels at least a margin inside it (tested)
+    grown: list[np.ndarray]  # per cell: its pixels and those within two margins around it (taken out)
+    terms: np.ndarray  # N x 5: x x, x y, y y, x w, y w of each pixel's ray (x, y) and inverse depth w
+
+
+def _face_cells(model: _Model, fc: _FaceCoords, rays: _Rays, s0: float, z0: float, margin: float) -> _FaceCells:
+    """Each bottom board, and each half of a block face (left and right) in its lower half, its upper half
+    and whole (a chipped corner, a chipped vertical edge), at the lateral centre `s0` and underside `z0`."""
     s_rel, h_rel = fc.s - s0, fc.h - z0
-    cells = [(lo, hi, 0.0, model.bottom_top) for lo, hi in model.bottom_segments()]
+    boxes = [(lo, hi, 0.0, model.bottom_top) for lo, hi in model.bottom_segments()]
     low = max(model.bottom_top, model.pocket_floor)
     z_mid = 0.5 * (low + model.block_top)
     for lo, hi in model.columns:
         y_mid = 0.5 * (lo + hi)
         for y0, y1 in ((lo, y_mid), (y_mid, hi)):
-            cells += [(y0, y1, low, z_mid), (y0, y1, z_mid, model.block_top), (y0, y1, low, model.block_top)]
-    # Normal equations of the plane fit (`_fit_plane`) over the usable pixels, a cell's own taken out below.
-    x, y, w = rays.d[:, 0], rays.d[:, 1], rays.w
-    terms = np.stack([x * x, x * y, y * y, x * w, y * w], axis=1)
-    total = terms[usable].sum(axis=0)
-    depth = cfg.missing_board_depth_m
-    behind = depth / (fc.D * (fc.D + depth))  # in inverse depth
+            boxes += [(y0, y1, low, z_mid), (y0, y1, z_mid, model.block_top), (y0, y1, low, model.block_top)]
     g = 2.0 * margin
-    for y0, y1, z0_, z1_ in cells:
-        m = (s_rel >= y0 + margin) & (s_rel <= y1 - margin) & (h_rel >= z0_ + margin) & (h_rel <= z1_ - margin)
-        n = int(m.sum())
+    near = np.flatnonzero(
+        (s_rel >= min(b[0] for b in boxes) - g)
+        & (s_rel <= max(b[1] for b in boxes) + g)
+        & (h_rel >= -g)
+        & (h_rel <= model.block_top + g)
+    )
+    s_n, h_n = s_rel[near], h_rel[near]
+    inner, grown = [], []
+    for y0, y1, z0_, z1_ in boxes:
+        m = (s_n >= y0 + margin) & (s_n <= y1 - margin) & (h_n >= z0_ + margin) & (h_n <= z1_ - margin)
+        gm = (s_n >= y0 - g) & (s_n <= y1 + g) & (h_n >= z0_ - g) & (h_n <= z1_ + g)
+        inner.append(near[m])
+        grown.append(near[gm])
+    x, y, w = rays.d[:, 0], rays.d[:, 1], rays.w
+    return _FaceCells(inner, grown, np.stack([x * x, x * y, y * y, x * w, y * w], axis=1))
+
+
+def _recessed(
+    cells: _FaceCells, rays: _Rays, usable: np.ndarray, D: float, sigma: float, cfg: PalletEstimatorConfig
+) -> np.ndarray:
+    """Pixels of the modelled face that are not there (a damaged pallet): their rays end well behind it.
+
+    The cells of the face (`_face_cells`) are tested one by one. A cell is gone where the median
+    inverse-depth residual of its pixels, against the plane fitted to the `usable` pixels outside it (so
+    that the missing part cannot tilt the plane towards itself), lies clearly (`RECESS_SIGMAS` standard
+    errors) and at least `cfg.missing_board_depth_m` behind the face (`D` m away). Then the cell and a
+    margin around it are no evidence of the face: its edges border a hole (flying pixels, rays that pass
+    the missing part's edge and end on the floor behind it).
+    """
+    out = np.zeros(len(rays.w), bool)
+    total = cells.terms[usable].sum(axis=0)
+    depth = cfg.missing_board_depth_m
+    behind = depth / (D * (D + depth))  # in inverse depth
+    for inner, grown in zip(cells.inner, cells.grown, strict=True):
+        n = len(inner)
         if n < 5:
             continue
-        grown = (s_rel >= y0 - g) & (s_rel <= y1 + g) & (h_rel >= z0_ - g) & (h_rel <= z1_ + g)
-        sxx, sxy, syy, sxw, syw = total - terms[usable & grown].sum(axis=0)
+        sxx, sxy, syy, sxw, syw = total - cells.terms[grown[usable[grown]]].sum(axis=0)
         det = sxx * syy - sxy * sxy
         if det <= 0.0:
             continue
         A, B = (syy * sxw - sxy * syw) / det, (sxx * syw - sxy * sxw) / det
-        med = float(np.median(w[m] - (A * x[m] + B * y[m])))
+        d = rays.d[inner]
+        med = float(np.median(rays.w[inner] - (A * d[:, 0] + B * d[:, 1])))
         if med < -behind and med < -RECESS_SIGMAS * 1.25 * sigma / np.sqrt(n):
-            out |= grown
+            out[grown] = True
     return out
 
 
