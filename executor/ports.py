@@ -2,6 +2,8 @@
 
 `sim.simulator.Simulator` implements `VehiclePort` and `CameraSource` directly; a robot adapter
 implements them for the real forklift. `LocalPerception` is the in-process `PerceptionService`.
+`PassThroughVehicle` is the base of a `VehiclePort` that wraps another and changes or watches a few of
+its calls (the watchdog's, the recorder's).
 The `Clock` port is in `executor.clock`. Times (`localization_stamp`, frame stamps) are on the
 runner's clock, in seconds.
 """
@@ -9,7 +11,7 @@ runner's clock, in seconds.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from palletpilot.control.safety import SafetyState
 from palletpilot.geometry import SE2
@@ -73,6 +75,32 @@ class VehiclePort(Protocol):
     def set_safety_field_set(self, name: str) -> None:
         """Select the scanners' field set (`control.safety.FIELD_SETS`): `normal`, or `narrow` to enter a
         pallet or a floor drop slot once the camera has seen the entry volume clear."""
+
+
+class PassThroughVehicle:
+    """A `VehiclePort` that hands every call to `inner`; a subclass overrides the calls it changes or
+    watches. The protocol's properties are delegated explicitly (`__getattr__` does not see them)."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    @property
+    def speed(self) -> float:
+        """Measured speed (m/s)."""
+        return float(self.inner.speed)
+
+    @property
+    def steering(self) -> float:
+        """Measured steering angle (rad)."""
+        return float(self.inner.steering)
+
+    @property
+    def fork_height(self) -> float:
+        """Measured fork height (m)."""
+        return float(self.inner.fork_height)
 
 
 class PerceptionService(Protocol):

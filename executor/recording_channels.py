@@ -43,6 +43,7 @@ import foxglove
 import numpy as np
 from foxglove.messages import LogLevel
 
+from palletpilot.executor.ports import PassThroughVehicle
 from palletpilot.geometry import SE2, PalletpilotError
 from palletpilot.geometry.fileio import dumps_json
 
@@ -181,12 +182,12 @@ def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-class RecordingVehicle:
+class RecordingVehicle(PassThroughVehicle):
     """A `VehiclePort` that passes everything through and remembers what the executor read: the last
     localization fix (`T_world_forklift`, map frame) and the last beam ranges (m)."""
 
     def __init__(self, inner: Any, on_beams: Callable[[tuple[float, float]], None] | None = None) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.last_pose: SE2 | None = None
         self.last_ranges: tuple[float, float] | None = None
         self._on_beams = on_beams
@@ -204,24 +205,6 @@ class RecordingVehicle:
         if self._on_beams is not None:
             self._on_beams(ranges)
         return ranges
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.inner, name)
-
-    @property
-    def speed(self) -> float:
-        """Measured speed (m/s)."""
-        return self.inner.speed
-
-    @property
-    def steering(self) -> float:
-        """Measured steering angle (rad)."""
-        return self.inner.steering
-
-    @property
-    def fork_height(self) -> float:
-        """Measured fork height (m)."""
-        return self.inner.fork_height
 
 
 class RecordingSegmenter:

@@ -21,12 +21,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.clock import Clock
 from palletpilot.executor.errors import LOCALIZATION_FAULT, SENSOR_TIMEOUT, VEHICLE_FAULT, TaskFailed
-from palletpilot.executor.ports import VehiclePort
+from palletpilot.executor.ports import PassThroughVehicle, VehiclePort
 from palletpilot.geometry import SE2, wrap_angle
 from palletpilot.perception.frames import FrameBundle
 
@@ -44,11 +43,11 @@ class WatchdogLimits:
     localization_jump_deg: float = 5.0
 
 
-class CommandedVehicle:
+class CommandedVehicle(PassThroughVehicle):
     """A `VehiclePort` that remembers the last speed commanded (`commanded_speed`, m/s)."""
 
     def __init__(self, inner: VehiclePort) -> None:
-        self.inner = inner
+        super().__init__(inner)
         self.commanded_speed = 0.0
         self.emergency = False
 
@@ -74,25 +73,6 @@ class CommandedVehicle:
         self.emergency = True
         self.commanded_speed = 0.0
         self.inner.emergency_stop()
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.inner, name)
-
-    # Properties of the protocol, delegated explicitly (`__getattr__` does not see them on the class).
-    @property
-    def speed(self) -> float:
-        """Measured speed (m/s)."""
-        return self.inner.speed
-
-    @property
-    def steering(self) -> float:
-        """Measured steering angle (rad)."""
-        return self.inner.steering
-
-    @property
-    def fork_height(self) -> float:
-        """Measured fork height (m)."""
-        return self.inner.fork_height
 
 
 class Watchdogs:
