@@ -273,7 +273,10 @@ def _write_config(folder: Path, serial: str, port: int, args: argparse.Namespace
 def _launch(agv: _Agv, config: Path, scenario: Path, folder: Path, ready: queue.Queue[tuple[str, str]]) -> None:
     """Start one `palletpilot agv` in a session of its own; its first stdout line goes to `ready`."""
     cmd = [sys.executable, "-m", "palletpilot.cli", "agv", "--config", str(config), "--sim", str(scenario)]
-    cmd += ["--labels", "truth", "--seed", str(agv.sim_seed), "--report", str(folder / f"agv-{agv.serial}")]
+    report = folder / f"agv-{agv.serial}"
+    for old in report.glob("agv.db*"):  # an earlier run's journal (`--out` reused) would restore its order
+        old.unlink()
+    cmd += ["--labels", "truth", "--seed", str(agv.sim_seed), "--report", str(report)]
     agv.log = (folder / f"agv-{agv.serial}.log").open("w")
     agv.proc = subprocess.Popen(
         cmd,

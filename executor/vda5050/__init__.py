@@ -13,6 +13,8 @@ Modules:
   `actions`: the supported actions (`CATALOGUE`) and the action state machine; `nurbs`: trajectories.
 - `state`: the outgoing state, visualization, connection and factsheet messages; `config`: `agv.yaml`.
 - `mqtt`: `AgvLink` (paho-mqtt 2.x: topics, QoS, retained flags, last will, reconnects with backoff).
+- `persist`: the AGV's crash-safe journal (checkpoints of the order state on `executor.journal`, sessions,
+  the writer thread).
 - `agv`: `Agv`, the vehicle driver (one runner per leg of the order); `vehicle`: the simulated or real
   truck behind it (`sim_backend`, `robot_backend`, `TickClock`).
 

@@ -22,6 +22,9 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 After a failure the truck stays stopped and takes no further leg until the master cancels the order or
 sends a new one. Connection loss changes nothing here: the truck goes on up to the last released node.
 
+Crash safety: `restart.AgvJournal` (a base of `Agv`) checkpoints to the journal (`persist`) on every
+`changed()` and restores the last checkpoint after a restart, with its safe rule.
+
 Recording (`executor.recording`, with a `Recorder`): the whole session in one file. The recorder wraps
 the vehicle once (every leg's runner drives the wrapper) and the camera, follows each leg's runner
 (`attach` / `detach`), ticks with the clock (`TickClock` hook), and takes the session's own events as
@@ -29,8 +32,8 @@ the vehicle once (every leg's runner drives the wrapper) and the camera, follows
 `leg_start`, `leg_end`, `leg_failed`. `finish_recording()` writes the session's `/report/run` (every
 leg's task results, the legs; success when every leg succeeded) and closes the file.
 
-Public API: `Agv` (`run`, `stop`, `connect`, `publisher`, `on_message`, `finish_recording`), `AgvControls`,
-`OrderPlanner`.
+Public API: `Agv` (`run`, `stop`, `connect`, `publisher`, `on_message`, `finish_recording`, and from
+`AgvJournal`: `attach_journal`, `checkpoint_doc`, `restore`), `AgvControls`, `OrderPlanner`.
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError, ErrorLevel
 from palletpilot.executor.vda5050.mqtt import AgvLink
 from palletpilot.executor.vda5050.orders import Leg, OrderManager, VehicleView
+from palletpilot.executor.vda5050.persist import Persister
+from palletpilot.executor.vda5050.restart import AgvJournal
 from palletpilot.executor.vda5050.routes import DEFAULT_DEVIATION_XY, pallet_name
 from palletpilot.executor.vda5050.state import Messages, Snapshot, error_type, reason_level
 from palletpilot.executor.vda5050.validation import Headers
@@ -111,7 +116,7 @@ class OrderPlanner(Planner):
         return super().plan(start, goal, start_yaw=start_yaw, goal_yaw=goal_yaw)
 
 
-class Agv:
+class Agv(AgvJournal):
     """One VDA 5050 AGV over a vehicle backend (see the module docstring). `recorder`: record the whole
     session into it (the caller closes it with `finish_recording`)."""
 
@@ -179,6 +184,10 @@ class Agv:
         self._last_node: tuple[str, int] = ("", 0)
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self.persister: Persister | None = None
+        """The journal's writer (`attach_journal`): a checkpoint on every `changed()`."""
+        self._reserved: dict[str, int] = {}
+        """The headerIds reserved per topic by the last checkpoint built."""
 
     # -- wiring -----------------------------------------------------------------------------------
     def connect(self) -> AgvLink:
@@ -194,8 +203,10 @@ class Agv:
         return self.link
 
     def changed(self) -> None:
-        """An event: publish the state now (from any thread)."""
+        """An event: publish the state now and checkpoint it (from any thread; never waits for the disk)."""
         self._wake.set()
+        if self.persister is not None:
+            self.persister.request()
 
     def _note(self, event: str, **data: Any) -> None:
         """A session event for the recording (any thread; nothing without a recorder)."""
@@ -394,7 +405,8 @@ class Agv:
                 return self._fail(a, "initPositionError", f"initPosition: the truck does not stand at node '{node}'")
             with self.orders.lock:
                 self.orders.last_node_id, self.orders.last_node_seq = str(node), 0
-                self.orders.rm = []
+                self.orders.last_rm, self.orders.rm = str(node), []
+                self.orders.stitch_block = None
             self.heading = self._axis_heading(str(node))
         self.orders.actions.set(a.action_id, A.FINISHED)
         return None

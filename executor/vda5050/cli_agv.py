@@ -1,8 +1,8 @@
 """`palletpilot agv`: run as one AGV of a fleet, orders from a VDA 5050 master over MQTT (wired in by `executor.cli`).
 
 `palletpilot agv --config agv.yaml (--sim SCENARIO | --robot robot.yaml) [--labels model|truth] [--seed N]
-[--report DIR] [--foxglove [PORT]] [--foxglove-host HOST] [--quiet]` checks the config file (and the map,
-vehicle, TLS files it names) and the scenario first: a problem is one line on stderr and exit 2. Then it
+[--report DIR] [--journal FILE] [--foxglove [PORT]] [--foxglove-host HOST] [--quiet]` checks the config file
+(and the map, vehicle, TLS files it names) and the scenario first: a problem is one line on stderr and exit 2. Then it
 connects to the broker (retrying with backoff until it gets through), prints one line on stdout,
 `agv ready: <interface>/v2/<manufacturer>/<serial>/ (simulated scenario ...)`, and runs until SIGINT or
 SIGTERM: the truck stops, `connection` goes OFFLINE, and it exits 0. Progress (connection, orders accepted
@@ -15,6 +15,15 @@ seconds so a crash loses little. `--foxglove` also serves it live. A file that c
 line on stderr, and the AGV drives on without it. `palletpilot replay DIR/run.mcap --report R` gives the
 session's report (every leg's task) once the AGV has stopped cleanly; it refuses, in one line, the file of
 a killed AGV (no summary, no `/report/run`), whose flushed chunks a streaming MCAP reader still reads.
+
+The order state is journalled (`executor.vda5050.persist`) to `--journal FILE` (default `DIR/agv.db`): on
+every event (order accepted, node traversed, action state, load, cancel) a checkpoint is committed off the
+control loop. Started on an unfinished journal (the AGV was killed, or stopped while an order executed), it
+restores the order, its progress, action states, errors, load and headerIds, publishes them in its first
+state, and stays halted (the running action FAILED, `orderInterrupted`) until the master sends an order it
+accepts or cancelOrder (`Agv.restore`). A clean stop with no order executing finishes the journal; the next
+start begins a new one (headerIds carried over). A journal of another AGV, map or program is one line on
+stderr and exit 2.
 
 `--sim SCENARIO` drives the simulated warehouse of a scenario in real time (its map must be the config's);
 `--robot robot.yaml` needs the ROS 2 adapter (`palletpilot.executor.ros`) and says so when it is missing.
@@ -49,6 +58,7 @@ def cmd_agv(args: argparse.Namespace) -> int:
     from palletpilot.executor.recording import Recorder, start_recording
     from palletpilot.executor.vda5050.agv import Agv
     from palletpilot.executor.vda5050.config import load_config
+    from palletpilot.executor.vda5050.persist import JOURNAL_NAME, Persister, agv_meta, open_session
     from palletpilot.executor.vda5050.vehicle import robot_backend, sim_backend
 
     stop = threading.Event()
@@ -64,12 +74,15 @@ def cmd_agv(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         loaded = load_config(args.config)
+        cfg = loaded.config
+        folder = Path(args.report) if args.report else Path("out/agv") / cfg.serial_number
+        journal_path = Path(args.journal) if args.journal else folder / JOURNAL_NAME
+        session = open_session(journal_path, agv_meta(cfg.manufacturer, cfg.serial_number, cfg.map_name))
         if args.sim:
             backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed)
         else:
             backend = robot_backend(loaded, args.robot)
         try:
-            folder = Path(args.report) if args.report else Path("out/agv") / loaded.config.serial_number
             folder.mkdir(parents=True, exist_ok=True)
             recorder = start_recording(folder, args.foxglove, wall=True, host=args.foxglove_host, flush_s=FLUSH_S)
         except BaseException:  # RecordingError: the port is taken
@@ -90,6 +103,20 @@ def cmd_agv(args: argparse.Namespace) -> int:
     if recorder.port is not None:
         log(f"foxglove: live on ws://{args.foxglove_host}:{recorder.port}")
     agv = Agv(loaded, backend, log=log, software_version=_version(), recorder=recorder)
+    persister = Persister(session.path, agv.checkpoint_doc, log=log)
+    try:
+        agv.messages.headers.start_at(session.headers)
+        if session.restored is not None:
+            agv.restore(session.restored, source=str(session.path))
+        persister.start()
+    except BaseException:
+        agv.finish_recording()
+        backend.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        raise
+    agv.attach_journal(persister)
+    persister.flush()  # the restored state and the headerIds reserved, committed before anything is sent
     link = agv.connect()
     if stop.is_set():
         agv.stop()
@@ -111,11 +138,23 @@ def cmd_agv(args: argparse.Namespace) -> int:
             agv.publish_state()
             link.close()
         finally:
+            executing = agv.orders.executing()  # run() has returned: the last state
+            persister.close(finish=not executing, reason=None if executing else "stopped with no order executing")
+            log(f"agv: journal {session.path}: {_journal_line(persister.stats())}")
             backend.close()
             for s, handler in previous.items():
                 signal.signal(s, handler)
     log("agv: stopped (connection OFFLINE)")
     return 0
+
+
+def _journal_line(stats: dict[str, float]) -> str:
+    if not stats.get("checkpoints"):
+        return "no checkpoints written"
+    return (
+        f"{stats['checkpoints']:.0f} checkpoints, write time mean {stats['mean_ms']:.1f} ms, "
+        f"p50 {stats['p50_ms']:.1f} ms, max {stats['max_ms']:.1f} ms (off the control loop)"
+    )
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -137,6 +176,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         type=out_folder,
         metavar="DIR",
         help="folder for the session's recording run.mcap (default out/agv/SERIAL)",
+    )
+    p.add_argument(
+        "--journal",
+        metavar="FILE",
+        help="the crash-safe journal of the AGV's order state (default DIR/agv.db): an unfinished one is resumed",
     )
     add_foxglove_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

@@ -14,7 +14,8 @@ Acceptance of an `order` message, in this order:
 3. Stitching: while executing, the first node must be the decision point (the last released node: same
    nodeId and sequenceId); when the order is done, it must be `lastNodeId` / `lastNodeSequenceId`.
    Otherwise `orderUpdateError`. The stitching node keeps the content it had (section 6.6.2); the old
-   horizon is replaced by the update's nodes and edges.
+   horizon is replaced by the update's nodes and edges. After a restart that found the truck away from
+   lastNodeId (`stitch_block`, see `persist`), nothing stitches (`orderUpdateError`) until a new order.
 4. Route and actions (`routes.RouteChecker`): nodes on the roadmap by id or position, roadmap edges
    drivable in sequence (`noRouteError`), edge fields and node actions this truck can perform, no zone set
    (`orderError`); an order is refused while charging or with a FATAL vehicle fault (`orderError`).
@@ -69,6 +70,8 @@ from palletpilot.roadmap import Roadmap
 
 SUPPORTED_MAJOR = "2"
 """Messages of protocol versions 2.x are read (2.0.0 and 2.1.0 masters)."""
+MAX_RECEIVED = 16
+"""`OrderManager.received` keeps this many order messages (the journal's copy of the order as received)."""
 
 
 @dataclass(frozen=True)
@@ -134,6 +137,14 @@ class OrderManager:
         self.actions = ActionTable()
         self.errors: list[AgvError] = []
         """Order-related warnings: rejections, noOrderToCancel, instant action errors, failed actions."""
+        self.last_rm = ""
+        """The roadmap node of `last_node_id` (kept after a cancel)."""
+        self.received: list[dict[str, Any]] = []
+        """The order messages accepted since the last new order, as received (the last `MAX_RECEIVED`)."""
+        self.stitch_block: str | None = None
+        """Why no order may stitch at the current one (after a restart the truck is not at lastNodeId): every
+        update or stitch is refused with it (`orderUpdateError`) until a new order is accepted or initPosition
+        sets the node."""
         self.lock = threading.RLock()
 
     # -- queries -----------------------------------------------------------------------------------
@@ -193,7 +204,13 @@ class OrderManager:
                 kind: Literal["new", "update", "stitch"] = "update"
             else:
                 kind = "stitch" if self.executing() else "new"
-            return self._continue(order, kind, view, refs)
+            if kind != "new" and self.stitch_block is not None:
+                why = f"the order cannot continue from lastNodeId '{self.last_node_id}': {self.stitch_block}"
+                return self._reject(ORDER_UPDATE_ERROR, why, [*refs, ("lastNodeId", self.last_node_id)], [])
+            decision = self._continue(order, kind, view, refs)
+            if decision.accepted:
+                self.received = [*([] if decision.kind == "new" else self.received), doc][-MAX_RECEIVED:]
+            return decision
 
     def _continue(
         self, order: Order, kind: Literal["new", "update", "stitch"], view: VehicleView, refs: list[ErrorRef]
@@ -277,6 +294,8 @@ class OrderManager:
             e for e in self.errors if e.level is ErrorLevel.FATAL
         ]  # warnings last until an order is accepted
         self.order_id, self.order_update_id = order.order_id, order.order_update_id
+        if kind == "new":
+            self.stitch_block = None  # it starts where the truck stands (checked)
         if kind == "new" or join < 0:
             if kind == "new":
                 self.actions.new_order()
@@ -296,6 +315,7 @@ class OrderManager:
             node = self.nodes[0]
             self.cursor = 1
             self.last_node_id, self.last_node_seq = node.node_id, node.sequence_id
+            self.last_rm = self.rm[0]
 
     def _reject(self, error_type: str, what: str, refs: list[ErrorRef], problems: list[Problem]) -> Decision:
         lines = [p for p, _ in problems]
@@ -330,6 +350,7 @@ class OrderManager:
             if not self.can_enter(rm_node):
                 return None
             node = self.nodes[self.cursor]
+            self.last_rm = self.rm[self.cursor]
             self.cursor += 1
             self.last_node_id, self.last_node_seq = node.node_id, node.sequence_id
             return node

@@ -165,16 +165,33 @@ class Headers:
         self.stamp = stamper or Stamper()
         self._next: dict[str, int] = {}
         self._lock = threading.Lock()
+        self.on_header: Callable[[str, int], None] | None = None
+        """Called with (topic, headerId) after every header taken, outside the lock (the AGV's journal
+        reserves headerIds ahead with it)."""
 
     def header(self, topic: str) -> dict[str, Any]:
         """The header of the next message on `topic` (takes its headerId)."""
         with self._lock:
             header_id = self._next.get(topic, 0)
             self._next[topic] = (header_id + 1) % UINT32
-            return {
+            out = {
                 "headerId": header_id,
                 "timestamp": self.stamp(),
                 "version": self.version,
                 "manufacturer": self.manufacturer,
                 "serialNumber": self.serial_number,
             }
+        if self.on_header is not None:
+            self.on_header(topic, header_id)
+        return out
+
+    def counters(self) -> dict[str, int]:
+        """The next headerId of every topic used so far."""
+        with self._lock:
+            return dict(self._next)
+
+    def start_at(self, counters: dict[str, int]) -> None:
+        """Continue every topic in `counters` at (at least) its headerId: after a restart, above every id sent."""
+        with self._lock:
+            for topic, next_id in counters.items():
+                self._next[topic] = max(self._next.get(topic, 0), int(next_id) % UINT32)
