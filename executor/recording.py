@@ -57,7 +57,7 @@ from foxglove.channels import (
     PoseInFrameChannel,
     SceneUpdateChannel,
 )
-from foxglove.messages import FrameTransform, FrameTransforms, Log, Point3, SceneUpdate, Vector3
+from foxglove.messages import Log, Point3, SceneUpdate
 
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.control.safety import safety_fields
@@ -535,35 +535,14 @@ class Recorder:
         if runner is None and self._ticks % IDLE_EVERY:
             return  # between legs the truck stands: 2 Hz is enough
         ns = self.ns()
-        ts = scene.stamp(ns)
         height = vehicle.fork_height
         pose = vehicle.last_pose
-        transforms = []
         if pose is not None:
-            transforms.append(
-                FrameTransform(
-                    timestamp=ts,
-                    parent_frame_id=scene.MAP,
-                    child_frame_id=scene.BASE_LINK,
-                    translation=Vector3(x=pose.x, y=pose.y, z=0.0),
-                    rotation=scene.quat_yaw(pose.yaw),
-                )
-            )
             self._drive_point(pose)
-        if self._calibration is not None:
-            T = SE3.from_translation(0.0, 0.0, height) @ self._calibration
-            translation, rotation = scene.vector_quat(T)
-            transforms.append(
-                FrameTransform(
-                    timestamp=ts,
-                    parent_frame_id=scene.BASE_LINK,
-                    child_frame_id=scene.CAMERA,
-                    translation=translation,
-                    rotation=rotation,
-                )
-            )
-        if transforms:
-            self.ch_tf.log(FrameTransforms(transforms=transforms), log_time=ns)
+        mount = None if self._calibration is None else SE3.from_translation(0.0, 0.0, height) @ self._calibration
+        tf = scene.tf_tree(ns, pose, mount)
+        if tf is not None:
+            self.ch_tf.log(tf, log_time=ns)
             self._count("/tf")
         loaded = bool(vehicle.load_detected())
         follower = self._follower

@@ -30,6 +30,8 @@ from foxglove.messages import (
     ArrowPrimitive,
     Color,
     CubePrimitive,
+    FrameTransform,
+    FrameTransforms,
     KeyValuePair,
     LinePrimitive,
     LinePrimitiveLineType,
@@ -102,6 +104,35 @@ def pose_se3(T: SE3) -> Pose:
     """A 3D pose."""
     position, orientation = vector_quat(T)
     return Pose(position=position, orientation=orientation)
+
+
+def tf_tree(ns: int, T_map_base: SE2 | None, T_base_camera: SE3 | None) -> FrameTransforms | None:
+    """The `/tf` message at `ns`: `map -> base_link` (the truck on the floor) and `base_link -> camera`
+    (the camera mount at the current lift), each where known; None when neither is."""
+    ts = stamp(ns)
+    transforms = []
+    if T_map_base is not None:
+        transforms.append(
+            FrameTransform(
+                timestamp=ts,
+                parent_frame_id=MAP,
+                child_frame_id=BASE_LINK,
+                translation=Vector3(x=T_map_base.x, y=T_map_base.y, z=0.0),
+                rotation=quat_yaw(T_map_base.yaw),
+            )
+        )
+    if T_base_camera is not None:
+        translation, rotation = vector_quat(T_base_camera)
+        transforms.append(
+            FrameTransform(
+                timestamp=ts,
+                parent_frame_id=BASE_LINK,
+                child_frame_id=CAMERA,
+                translation=translation,
+                rotation=rotation,
+            )
+        )
+    return FrameTransforms(transforms=transforms) if transforms else None
 
 
 def _box(pose: Pose, size: Sequence[float], rgba: Sequence[float]) -> CubePrimitive:

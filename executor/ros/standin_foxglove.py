@@ -30,8 +30,6 @@ import math
 import time
 from typing import TYPE_CHECKING, Any
 
-from foxglove.messages import FrameTransform, FrameTransforms, Vector3
-
 from palletpilot.control.safety import safety_fields
 from palletpilot.executor import recording_scene as scene
 from palletpilot.executor.recording import Recorder
@@ -129,26 +127,10 @@ class StandInView:
         """`/tf` and `/vehicle/state` from the truth."""
         sim, rec = self.sim, self.rec
         pose, height = sim.true_pose, sim.fork_height
-        ts = scene.stamp(ns)
         mount = SE3.from_translation(0.0, 0.0, height) @ sim.T_forklift_camera_true
-        translation, rotation = scene.vector_quat(mount)
-        transforms = [
-            FrameTransform(
-                timestamp=ts,
-                parent_frame_id=scene.MAP,
-                child_frame_id=scene.BASE_LINK,
-                translation=Vector3(x=pose.x, y=pose.y, z=0.0),
-                rotation=scene.quat_yaw(pose.yaw),
-            ),
-            FrameTransform(
-                timestamp=ts,
-                parent_frame_id=scene.BASE_LINK,
-                child_frame_id=scene.CAMERA,
-                translation=translation,
-                rotation=rotation,
-            ),
-        ]
-        rec.ch_tf.log(FrameTransforms(transforms=transforms), log_time=ns)
+        tf = scene.tf_tree(ns, pose, mount)
+        assert tf is not None  # both transforms are known
+        rec.ch_tf.log(tf, log_time=ns)
         if standin.estop_latched:
             state = "emergency_stop"
         elif standin.timeout_brake:
