@@ -40,8 +40,6 @@ import os
 import queue
 import selectors
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -57,6 +55,7 @@ import zenoh
 from palletpilot.executor.cli_perception import PARENT_ENV
 from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
 from palletpilot.executor.perception_server import DEFAULT_LISTEN, zenoh_config, zenoh_problem
+from palletpilot.executor.processes import end_process, free_port
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import dumps_json
 from palletpilot.perception import wire
@@ -354,13 +353,6 @@ class RemotePerception:
 # -- a service for one run -------------------------------------------------------------------------
 
 
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port nobody listens on right now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
-
-
 class LocalService:
     """`palletpilot perception serve` as a subprocess on a free loopback port, for one run (module docstring).
 
@@ -452,16 +444,7 @@ class LocalService:
         proc, self.process = self.process, None
         if proc is None:
             return
-        if proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=self.stop_timeout_s)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    proc.kill()
-                proc.wait(timeout=self.stop_timeout_s)
-        self.returncode = proc.returncode
+        self.returncode = end_process(proc, self.stop_timeout_s)
         if proc.stdout is not None:
             proc.stdout.close()
 

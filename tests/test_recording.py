@@ -14,6 +14,7 @@ from test_executor_missions import mission_file, scenario
 from palletpilot.cli import main
 from palletpilot.executor import recording_channels, recording_scene
 from palletpilot.executor.app import run_simulated
+from palletpilot.executor.processes import free_port
 from palletpilot.executor.recording import RECORDING, SIM_EPOCH_NS, TOPICS
 from palletpilot.geometry.fileio import bundled_path
 
@@ -156,16 +157,10 @@ def test_an_error_in_the_recorder_ends_the_recording_not_the_run(tmp_path, monke
     assert len(rec["messages"]["/log"]) >= 3 and "/report/run" not in rec["messages"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_foxglove_serves_the_channels_live(tmp_path):
     from websockets.sync.client import connect
 
-    port = _free_port()
+    port = free_port()
     seen: dict[str, str] = {}
 
     def look(runner):  # the run has started: the server advertises every channel

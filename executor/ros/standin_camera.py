@@ -47,6 +47,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
+from palletpilot.executor.processes import end_process
 from palletpilot.geometry import SE2, SE3, PalletpilotError
 
 if TYPE_CHECKING:
@@ -319,12 +320,7 @@ class CameraProcess:
         try:
             self._proc.wait(STOP_TIMEOUT_S)
         except subprocess.TimeoutExpired:
-            self._proc.terminate()
-            try:
-                self._proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
+            end_process(self._proc, STOP_TIMEOUT_S)
 
     def __enter__(self) -> CameraProcess:
         return self

@@ -35,6 +35,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Literal
 
+from palletpilot.executor.processes import end_process, free_port
 from palletpilot.geometry import PalletpilotError
 
 MOSQUITTO = Path("/usr/sbin/mosquitto")
@@ -49,13 +50,6 @@ Kind = Literal["auto", "mosquitto", "amqtt"]
 
 class BrokerUnavailableError(PalletpilotError):
     """No MQTT broker can be run here (none installed), or the broker did not come up (the message says why)."""
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free now (the kernel's choice)."""
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return int(s.getsockname()[1])
 
 
 def _mosquitto() -> list[str] | None:
@@ -184,13 +178,7 @@ class Broker:
         """End the broker: SIGTERM, SIGKILL after `STOP_TIMEOUT_S` s; a no-op when not running."""
         proc, self.proc = self.proc, None
         if proc is not None:
-            if proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(timeout=STOP_TIMEOUT_S)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            end_process(proc, STOP_TIMEOUT_S)
         if self._log_file is not None:
             self._log_file.close()
             self._log_file = None
