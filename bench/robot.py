@@ -19,7 +19,7 @@ outcome), and under `stand_in` its ticks, commands, camera frames and their rend
 stand-in's camera child process, `executor.ros.standin_camera`). The machine's other load shows in the
 figures; the whole benchmark takes about 100 s.
 
-Public API: `add_arguments`, `run`.
+Public API: `add_arguments`, `run`, `start_stand_in` (also the ROS 2 integration test's).
 """
 
 from __future__ import annotations
@@ -76,9 +76,11 @@ def _files(folder: Path, args: argparse.Namespace) -> tuple[Path, Path, Path]:
     return scenario, mission, calibration
 
 
-def _stand_in(env: dict[str, str], scenario: Path, log: Path) -> subprocess.Popen[str]:
-    """`palletpilot sim serve SCENARIO --ros`, once it printed its ready line."""
+def start_stand_in(env: dict[str, str], scenario: Path, log: Path, robot: Path | None = None) -> subprocess.Popen[str]:
+    """`palletpilot sim serve SCENARIO --ros [--robot ROBOT]` (stderr to `log`), returned once it printed its
+    ready line (its stdout is drained from then on); `RuntimeError` (killed) when it does not come up."""
     cmd = [sys.executable, "-m", "palletpilot.cli", "sim", "serve", str(scenario), "--ros"]
+    cmd += [] if robot is None else ["--robot", str(robot)]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=log.open("w"), text=True)
     lines: queue.Queue[str] = queue.Queue()
 
@@ -92,7 +94,7 @@ def _stand_in(env: dict[str, str], scenario: Path, log: Path) -> subprocess.Pope
         line = lines.get(timeout=READY_TIMEOUT_S)
     except queue.Empty:
         proc.kill()
-        raise RuntimeError(f"sim serve did not come up: {log.read_text()[-500:]}") from None
+        raise RuntimeError(f"sim serve did not come up: {log.read_text()[-2000:]}") from None
     if not line.startswith("stand-in truck ready:"):
         proc.kill()
         raise RuntimeError(f"sim serve: {line.strip()}")
@@ -124,7 +126,7 @@ def run(args: argparse.Namespace) -> dict:
         scenario, mission, calibration = _files(folder, args)
         env = {**os.environ, **loopback_env(folder), "PYTHONUNBUFFERED": "1"}
         serve_log = folder / "serve.log"
-        standin = _stand_in(env, scenario, serve_log)
+        standin = start_stand_in(env, scenario, serve_log)
         report = folder / "report"
         cmd = [sys.executable, "-m", "palletpilot.cli", "robot", str(mission), "--calibration", str(calibration)]
         cmd += ["--robot", str(bundled_path("missions", "robot.yaml")), "--report", str(report)]

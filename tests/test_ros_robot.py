@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import queue
 import signal
 import subprocess
 import sys
@@ -26,6 +25,7 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
+from palletpilot.bench.robot import start_stand_in
 from palletpilot.control.vehicle import load_vehicle
 from palletpilot.executor.ros import messages as m
 from palletpilot.executor.ros.dds import DdsTransport, loopback_env
@@ -37,7 +37,6 @@ from palletpilot.sim.simulator import Simulator
 ROBOT = bundled_path("missions", "robot.yaml")
 MAP = bundled_path("missions", "warehouse.yaml")
 FORKS = bundled_path("missions", "forks.yaml")
-READY_TIMEOUT_S = 60.0
 KILL_BRAKE_LIMIT_S = 0.3
 
 
@@ -77,21 +76,8 @@ def dds_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
 @contextlib.contextmanager
 def stand_in(env: dict[str, str], scenario: Path, log: Path) -> Iterator[subprocess.Popen[str]]:
     """`palletpilot sim serve SCENARIO --ros` until the block ends; then SIGINT, and it must exit 0."""
-    proc = _palletpilot(env, "sim", "serve", str(scenario), "--ros", "--robot", str(ROBOT), log=log)
-    lines: queue.Queue[str] = queue.Queue()
-
-    def read() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.put(line)
-
-    threading.Thread(target=read, daemon=True).start()
+    proc = start_stand_in(env, scenario, log, ROBOT)
     try:
-        try:
-            line = lines.get(timeout=READY_TIMEOUT_S)
-        except queue.Empty:
-            pytest.fail(f"sim serve did not come up: {log.read_text()[-2000:]}")
-        assert line.startswith("stand-in truck ready:"), line
         yield proc
     finally:
         if proc.poll() is None:
