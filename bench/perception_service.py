@@ -51,6 +51,7 @@ def run(args: argparse.Namespace) -> dict:
     """Time the service against the same estimation in this process; the figures as a dict."""
     from palletpilot.bench.pallet import frame_specs, render
     from palletpilot.executor.perception_remote import LocalService, RemotePerception
+    from palletpilot.executor.processes import keep_heap_mapped
     from palletpilot.geometry import SE2, SE3
     from palletpilot.geometry.fileio import bundled_path
     from palletpilot.perception import wire
@@ -72,6 +73,7 @@ def run(args: argparse.Namespace) -> dict:
         estimate_pallet(frame, calibration, pallet)
         local.append((time.perf_counter() - t0) * 1e3)
 
+    keep_heap_mapped()  # as `palletpilot run --perception remote|serve-local` does
     round_trip, inside, health = [], [], []
     with LocalService(forks, pallet) as service, RemotePerception([str(service.endpoint)], depth=args.depth) as client:
         for _ in range(args.warmup):

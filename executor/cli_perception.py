@@ -25,6 +25,7 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 from palletpilot.executor.cli_outcome import EXIT_OK
+from palletpilot.executor.processes import keep_heap_mapped
 from palletpilot.geometry.errors import collect, raise_problems
 
 if TYPE_CHECKING:
@@ -72,6 +73,7 @@ def cmd_perception_serve(args: argparse.Namespace) -> int:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
+        keep_heap_mapped()  # every request brings a frame of megabytes: reuse its pages
         server = _build(args)
         with server:
             from palletpilot.executor.perception_server import zenoh_config

@@ -55,7 +55,7 @@ import zenoh
 from palletpilot.executor.cli_perception import PARENT_ENV
 from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
 from palletpilot.executor.perception_server import DEFAULT_LISTEN, zenoh_config, zenoh_problem
-from palletpilot.executor.processes import end_process, free_port
+from palletpilot.executor.processes import end_process, free_port, keep_heap_mapped
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import dumps_json
 from palletpilot.perception import wire
@@ -321,7 +321,7 @@ class RemotePerception:
             f"({attempts} attempts, {deadline:g} s deadline each)"
         )
 
-    def _get(self, key: str, payload: bytes, deadline: float) -> tuple[bytes | None, str]:
+    def _get(self, key: str, payload: bytes | bytearray, deadline: float) -> tuple[bytes | None, str]:
         """The first reply's payload to one query, or None and why; returns within `deadline + grace_s`."""
         session = self._session
         if session is None:
@@ -474,7 +474,9 @@ def remote_perception(
 ) -> Iterator[RemotePerception]:
     """The client for `run --perception remote` (the service at `connect`) or `serve-local` (a service
     started for the run, stopped on leaving). The service must answer `health` and use the run's forks,
-    or `PerceptionError` says why before anything moves."""
+    or `PerceptionError` says why before anything moves. The run's process keeps its heap mapped
+    (`keep_heap_mapped`): every request encodes a frame of megabytes."""
+    keep_heap_mapped()
     with contextlib.ExitStack() as stack:
         if mode == "serve-local":
             service = LocalService(forks, pallet, model, prefix)

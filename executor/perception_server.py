@@ -188,7 +188,7 @@ class PerceptionServer:
 
         return on_query
 
-    def _reply(self, query: zenoh.Query, name: str, payload: bytes) -> None:
+    def _reply(self, query: zenoh.Query, name: str, payload: bytes | bytearray) -> None:
         try:
             query.reply(self.key(name), payload)
         except zenoh.ZError as exc:  # the client went away: nothing to answer
@@ -213,7 +213,7 @@ class PerceptionServer:
 
     # -- requests ------------------------------------------------------------------------------------
 
-    def handle(self, name: str, payload: bytes, received: float | None = None) -> bytes:
+    def handle(self, name: str, payload: bytes, received: float | None = None) -> bytes | bytearray:
         """Run one request (`name` in `wire.QUERIES`) and return its reply payload; never raises for
         a bad request (its reply is a JSON error). `received`: when it arrived (`time.monotonic`)."""
         where = self.key(name)
@@ -237,7 +237,7 @@ class PerceptionServer:
             self.stats.served += 1
         return reply
 
-    def _run(self, name: str, params: dict[str, Any], frames: list[FrameBundle], where: str) -> bytes:
+    def _run(self, name: str, params: dict[str, Any], frames: list[FrameBundle], where: str) -> bytes | bytearray:
         p = self.perception
         if name == "calibrate":
             shots = frames or [self._grab(params, where) for _ in range(_count(params, where))]

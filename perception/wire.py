@@ -105,12 +105,20 @@ def is_frame(payload: bytes) -> bool:
 # -- frame bundles ---------------------------------------------------------------------------------
 
 
-def encode_frame(frame: FrameBundle, depth: DepthEncoding = "f32") -> bytes:
+def encode_frame(frame: FrameBundle, depth: DepthEncoding = "f32") -> bytearray:
     """The frame as the binary of the module docstring (truth arrays left out).
 
     `depth`: `f32` sends the float32 metres as they are; `mm16` sends whole millimetres (half the
     bytes; a RealSense measures in millimetres anyway), NaN as 0, and refuses depths beyond 65.535 m.
     """
+    head, arrays = _frame_parts(frame, depth)
+    out = bytearray(_parts_size(head, arrays))
+    _write_parts(out, 0, head, arrays)
+    return out
+
+
+def _frame_parts(frame: FrameBundle, depth: DepthEncoding) -> tuple[bytes, list[np.ndarray]]:
+    """The header with the meta, and the arrays in wire order as C-contiguous arrays of their wire dtype."""
     h, w = frame.depth.shape
     flags = (_HAS_LABELS if frame.labels is not None else 0) | (_HAS_RGB if frame.rgb is not None else 0)
     meta = dumps_json({"K": frame.K.tolist(), "fork_height": frame.fork_height, "stamp_s": frame.stamp_s}).encode()
@@ -118,16 +126,31 @@ def encode_frame(frame: FrameBundle, depth: DepthEncoding = "f32") -> bytes:
         mm = np.rint(np.nan_to_num(frame.depth, nan=0.0) * 1000.0)
         if mm.size and float(mm.max()) > _MAX_MM:
             raise PerceptionError(f"frame: depth up to {float(mm.max()) / 1e3:.3f} m does not fit uint16 millimetres")
-        depth_bytes = mm.astype("<u2").tobytes()
+        arrays = [mm.astype("<u2")]
     else:
-        depth_bytes = frame.depth.astype("<f4", copy=False).tobytes()
-    parts = [_FRAME_HEADER.pack(_FRAME_MAGIC, WIRE_VERSION, _DEPTH_CODES[depth], flags, 0, h, w, len(meta)), meta]
-    parts.append(depth_bytes)
-    if frame.labels is not None:
-        parts.append(np.ascontiguousarray(frame.labels).tobytes())
-    if frame.rgb is not None:
-        parts.append(np.ascontiguousarray(frame.rgb).tobytes())
-    return b"".join(parts)
+        arrays = [np.ascontiguousarray(frame.depth, dtype="<f4")]
+    arrays += [np.ascontiguousarray(a) for a in (frame.labels, frame.rgb) if a is not None]
+    head = _FRAME_HEADER.pack(_FRAME_MAGIC, WIRE_VERSION, _DEPTH_CODES[depth], flags, 0, h, w, len(meta)) + meta
+    return head, arrays
+
+
+def _parts_size(head: bytes, arrays: Sequence[np.ndarray]) -> int:
+    return len(head) + sum(a.nbytes for a in arrays)
+
+
+def _write_parts(out: bytearray, offset: int, head: bytes, arrays: Sequence[np.ndarray]) -> int:
+    """Copy `head` and the arrays' bytes into `out` from `offset` (one copy each); the offset after them.
+
+    Encoding writes every frame straight into the one buffer that goes on the wire: a 640 x 480 RGB-D
+    frame is 2.4 MB, and each extra copy of it (`tobytes`, a join) costs the service's client 0.1-1 ms.
+    """
+    view = memoryview(out)
+    view[offset : offset + len(head)] = head
+    offset += len(head)
+    for a in arrays:
+        view[offset : offset + a.nbytes] = a.data.cast("B")
+        offset += a.nbytes
+    return offset
 
 
 def decode_frame(payload: bytes | memoryview, where: str = "frame") -> FrameBundle:
@@ -202,16 +225,22 @@ def _meta(text: bytes, where: str) -> dict[str, Any]:
 
 def encode_request(
     params: Mapping[str, Any], frames: Sequence[FrameBundle] = (), depth: DepthEncoding = "f32"
-) -> bytes:
-    """A request: JSON parameters and 0..`MAX_FRAMES` frames (module docstring)."""
+) -> bytearray:
+    """A request: JSON parameters and 0..`MAX_FRAMES` frames (module docstring), in one buffer."""
     if len(frames) > MAX_FRAMES:
         raise PerceptionError(f"request: {len(frames)} frames, at most {MAX_FRAMES}")
     text = dumps_json(dict(params)).encode()
-    parts = [_REQUEST_HEADER.pack(_REQUEST_MAGIC, WIRE_VERSION, len(frames), 0, len(text)), text]
-    for frame in frames:
-        blob = encode_frame(frame, depth)
-        parts += [_LENGTH.pack(len(blob)), blob]
-    return b"".join(parts)
+    parts = [_frame_parts(frame, depth) for frame in frames]
+    sizes = [_parts_size(head, arrays) for head, arrays in parts]
+    out = bytearray(_REQUEST_HEADER.size + len(text) + sum(_LENGTH.size + n for n in sizes))
+    _REQUEST_HEADER.pack_into(out, 0, _REQUEST_MAGIC, WIRE_VERSION, len(frames), 0, len(text))
+    offset = _REQUEST_HEADER.size
+    out[offset : offset + len(text)] = text
+    offset += len(text)
+    for (head, arrays), size in zip(parts, sizes, strict=True):
+        _LENGTH.pack_into(out, offset, size)
+        offset = _write_parts(out, offset + _LENGTH.size, head, arrays)
+    return out
 
 
 def decode_request(payload: bytes | memoryview, where: str = "request") -> tuple[dict[str, Any], list[FrameBundle]]:

@@ -60,6 +60,13 @@ def test_round_trip_keeps_every_field(tmp_path: Path) -> None:
     assert loaded.valid_depth().sum() == bundle.depth.size - 2
 
 
+def test_unlabeled_pixels_are_valid_labels() -> None:
+    b = _bundle()
+    labels = b.labels.copy()
+    labels[0, :3] = (255, 9, 0)  # unlabeled, person, drivable
+    assert FrameBundle(b.depth, b.K, labels).labels is not None
+
+
 def test_optional_fields_may_be_absent(tmp_path: Path) -> None:
     b = _bundle()
     path = _write_npz(tmp_path / "min.npz", depth=b.depth, K=b.K)
@@ -79,6 +86,7 @@ def test_optional_fields_may_be_absent(tmp_path: Path) -> None:
         (lambda a: a.update(labels=a["labels"].astype(np.int32)), "labels", "uint8"),
         (lambda a: a.update(labels=a["labels"][:, :-1]), "labels", "does not match"),
         (lambda a: a.update(labels=np.full_like(a["labels"], 42)), "labels", "unknown class ids [42]"),
+        (lambda a: a["labels"].__setitem__((slice(0, 2), 0), [255, 10]), "labels", "unknown class ids [10]"),
         (lambda a: a.update(rgb=a["rgb"][..., :2]), "rgb", "shape"),
         (lambda a: a.update(fork_height=np.array([0.1, 0.2])), "fork_height", "scalar"),
         (lambda a: a.update(T_forklift_camera_true=np.eye(3)), "T_forklift_camera_true", "4 x 4"),
@@ -92,7 +100,7 @@ def test_bad_bundle_files_raise_one_clear_line(tmp_path: Path, change, key: str,
     arrays = {
         "depth": b.depth.copy(),
         "K": b.K,
-        "labels": b.labels,
+        "labels": b.labels.copy(),
         "rgb": b.rgb,
         "fork_height": np.array(0.1),
         "T_forklift_camera_true": np.eye(4),
