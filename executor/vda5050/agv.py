@@ -22,6 +22,8 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 After a failure the truck stays stopped and takes no further leg until the master cancels the order or
 sends a new one. Connection loss changes nothing here: the truck goes on up to the last released node.
 
+Instant actions: `instant.AgvInstantActions` (a base of `Agv`) runs them on the network thread.
+
 Crash safety: `restart.AgvJournal` (a base of `Agv`) checkpoints to the journal (`persist`) on every
 `changed()` and restores the last checkpoint after a restart, with its safe rule.
 
@@ -57,7 +59,8 @@ from palletpilot.executor.runner import Runner
 from palletpilot.executor.vda5050 import validation
 from palletpilot.executor.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.vda5050.config import Loaded
-from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError, ErrorLevel
+from palletpilot.executor.vda5050.instant import AgvInstantActions
+from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError
 from palletpilot.executor.vda5050.mqtt import AgvLink
 from palletpilot.executor.vda5050.orders import Leg, OrderManager, VehicleView
 from palletpilot.executor.vda5050.persist import Persister
@@ -68,17 +71,12 @@ from palletpilot.executor.vda5050.validation import Headers
 from palletpilot.executor.vda5050.vehicle import Backend
 from palletpilot.geometry import angle_diff
 from palletpilot.perception.specs import builtin_pallet
-from palletpilot.roadmap import NodeType, Planner, Roadmap, Route
+from palletpilot.roadmap import Planner, Roadmap, Route
 
 if TYPE_CHECKING:
     from palletpilot.executor.recording import Recorder
 
 A = ActionStatus
-CHARGER_RADIUS_M = 0.3
-"""The truck charges when it stands this close to a charging node."""
-INIT_POSITION_XY_M = 0.5
-INIT_POSITION_YAW = math.radians(15.0)
-"""initPosition is accepted when it agrees with localization within these."""
 
 
 class AgvControls(Controls):
@@ -116,7 +114,7 @@ class OrderPlanner(Planner):
         return super().plan(start, goal, start_yaw=start_yaw, goal_yaw=goal_yaw)
 
 
-class Agv(AgvJournal):
+class Agv(AgvInstantActions, AgvJournal):
     """One VDA 5050 AGV over a vehicle backend (see the module docstring). `recorder`: record the whole
     session into it (the caller closes it with `finish_recording`)."""
 
@@ -316,100 +314,6 @@ class Agv(AgvJournal):
             self.log(f"agv: order {oid} rejected: {decision.error.error_type}: {decision.error.description}")
             error = decision.error
             self._note("order_rejected", **ids, error_type=error.error_type, description=error.description)
-
-    def _instant(self, doc: dict[str, Any]) -> None:
-        for record in self.orders.receive_instant_actions(doc):
-            a = record.action
-            try:
-                self._run_instant(a)
-            except IllegalTransitionError as exc:
-                self.log(f"agv: {exc}")
-
-    def _run_instant(self, a: Action) -> None:
-        o, t = self.orders, a.action_type
-        self.log(f"agv: instant action {t} ({a.action_id})")
-        self._note("instant_action", action_type=t, action_id=a.action_id)
-        if t == "startPause":
-            self.controls.master_pause = True
-            self.controls.refresh()
-            o.actions.pause()
-            if self.snapshot.driving:
-                o.actions.set(a.action_id, A.RUNNING)
-                self._pause_action = a.action_id
-            else:
-                o.actions.set(a.action_id, A.FINISHED)
-        elif t == "stopPause":
-            self.controls.master_pause = False
-            self.controls.refresh()
-            o.actions.unpause()
-            o.actions.set(a.action_id, A.FINISHED)
-        elif t == "cancelOrder":
-            o.actions.set(a.action_id, A.RUNNING)
-            o.cancel()
-            self.halted = None
-            self._cancel_action = a.action_id
-            self.controls.cancel("cancelled by the master (cancelOrder)")
-        elif t in ("startCharging", "stopCharging"):
-            self._charging(a, t == "startCharging")
-        elif t == "initPosition":
-            self._init_position(a)
-        elif t == "stateRequest":
-            o.actions.set(a.action_id, A.FINISHED)
-        elif t == "factsheetRequest":
-            self._send("factsheet", lambda: self.messages.factsheet(self.software_version))
-            o.actions.set(a.action_id, A.FINISHED)
-
-    def _fail(self, a: Action, error_type_: str, why: str, refs: tuple[tuple[str, str], ...] = ()) -> None:
-        error = AgvError(
-            error_type_, ErrorLevel.WARNING, why, (("actionId", a.action_id), ("actionType", a.action_type), *refs)
-        )
-        self.orders.fail_action(a.action_id, error, why)
-
-    def _charging(self, a: Action, start: bool) -> None:
-        s = self.snapshot
-        if start:
-            near = any(
-                math.hypot(n.pose.x - s.x, n.pose.y - s.y) <= CHARGER_RADIUS_M
-                for n in self.roadmap.nodes()
-                if n.type is NodeType.CHARGING
-            )
-            if not near or s.driving:
-                self._fail(a, "chargingError", "startCharging: the truck does not stand at a charging node")
-                return
-        self.charging = start
-        self.orders.actions.set(a.action_id, A.FINISHED)
-
-    def _init_position(self, a: Action) -> None:
-        s = self.snapshot
-        x, y, theta, map_id = (a.param(k) for k in ("x", "y", "theta", "mapId"))
-        node = a.param("lastNodeId")
-        if self.orders.executing():
-            return self._fail(a, "initPositionError", "initPosition: not while an order runs (cancel it first)")
-        if map_id != self.config.map_name:
-            return self._fail(
-                a,
-                "initPositionError",
-                f"initPosition: mapId '{map_id}' is not this truck's map '{self.config.map_name}'",
-            )
-        off = math.hypot(float(x) - s.x, float(y) - s.y)
-        if off > INIT_POSITION_XY_M or abs(angle_diff(float(theta), s.theta)) > INIT_POSITION_YAW:
-            return self._fail(
-                a, "initPositionError", f"initPosition: the pose is {off:.2f} m from where localization puts the truck"
-            )
-        if node is not None:
-            if (
-                node not in self.roadmap
-                or math.hypot(self.roadmap.node(node).pose.x - s.x, self.roadmap.node(node).pose.y - s.y)
-                > DEFAULT_DEVIATION_XY
-            ):
-                return self._fail(a, "initPositionError", f"initPosition: the truck does not stand at node '{node}'")
-            with self.orders.lock:
-                self.orders.last_node_id, self.orders.last_node_seq = str(node), 0
-                self.orders.last_rm, self.orders.rm = str(node), []
-                self.orders.stitch_block = None
-            self.heading = self._axis_heading(str(node))
-        self.orders.actions.set(a.action_id, A.FINISHED)
-        return None
 
     # -- the executor thread ------------------------------------------------------------------------
     def stop(self) -> None:
