@@ -26,6 +26,7 @@ Public API:
   `GroundTruthSegmenter`, `evaluate_segmenter`, `SegmentationScore` (pooled per-class IoU),
   `load_hidden_mask` (pallets cut off where their load would be); `perception.train_segmentation`
   trains the model.
-- `perception.realsense`: `RealSenseSource` (live D435/D435i), `RecordingSource` (.db3 recordings).
+- `perception.realsense`: `RealSenseSource` (live D435/D435i), `RecordingSource` (.db3 recordings);
+  `perception.realsense_synthetic`: `write_software_recording` (a recording of synthetic frames).
 - `PerceptionError`: every perception failure.
 """

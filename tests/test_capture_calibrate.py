@@ -8,7 +8,7 @@ from palletpilot.cli import main
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import mount_angles
 from palletpilot.perception.frames import load_bundle
-from palletpilot.perception.realsense import write_software_recording
+from palletpilot.perception.realsense_synthetic import write_software_recording
 from palletpilot.sim.scenario import Scenario
 from palletpilot.sim.simulator import Simulator
 

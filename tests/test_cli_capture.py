@@ -14,7 +14,7 @@ from palletpilot.executor.cli_capture import add_parsers
 from palletpilot.geometry import PalletpilotError
 from palletpilot.perception import realsense
 from palletpilot.perception.frames import load_bundle
-from palletpilot.perception.realsense import write_software_recording
+from palletpilot.perception.realsense_synthetic import write_software_recording
 
 K = np.array([[400.0, 0.0, 80.0], [0.0, 400.0, 60.0], [0.0, 0.0, 1.0]])
 

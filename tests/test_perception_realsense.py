@@ -25,8 +25,8 @@ from palletpilot.perception.realsense import (
     RealSenseSource,
     RecordingSource,
     extract_recording,
-    write_software_recording,
 )
+from palletpilot.perception.realsense_synthetic import write_software_recording
 
 H, W = 480, 640
 K_DEPTH = np.array([[380.0, 0.0, 320.0], [0.0, 380.0, 240.0], [0.0, 0.0, 1.0]])
