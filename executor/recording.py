@@ -25,7 +25,9 @@ Frames (REP 105, `executor.recording_scene`): `map` (world), `base_link` (forkli
 Time: the run's clock in nanoseconds: simulated seconds from `SIM_EPOCH_NS` (2024-01-01T00:00:00Z, so
 a seeded run records the same stamps), or wall time; `log_time` never decreases.
 
-Channels: `executor.recording_channels` lists them (topic, schema, when; `TOPICS`).
+Channels: `executor.recording_channels` lists them (topic, schema, when; `TOPICS`). The recorder's
+event handlers live in `executor.recording_events` and its camera side in `executor.recording_camera`
+(both bases of `Recorder`); scene messages are built by `executor.recording_scene`.
 
 Cost: the recorder times itself; `cost()` gives the time spent in it per control tick (mean, p99,
 max, ms), also written as the MCAP metadata record `recording_cost`.
@@ -57,15 +59,14 @@ from foxglove.channels import (
     PoseInFrameChannel,
     SceneUpdateChannel,
 )
-from foxglove.messages import Log, Point3, SceneUpdate
+from foxglove.messages import Point3
 
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.control.safety import safety_fields
-from palletpilot.executor import recording_camera as camera
 from palletpilot.executor import recording_scene as scene
+from palletpilot.executor.recording_camera import RecorderCamera
 from palletpilot.executor.recording_channels import (
     BEAMS_EVERY,
-    DEPTH_STRIDE,
     DRIVEN_EVERY,
     DRIVEN_STEP_M,
     FOXGLOVE_PORT,
@@ -76,20 +77,16 @@ from palletpilot.executor.recording_channels import (
     SIM_EPOCH_NS,
     TOPICS,
     RecordingError,
-    RecordingSegmenter,
     RecordingVehicle,
     add_foxglove_argument,
     finite,
     json_schema,
-    level,
-    log_text,
 )
+from palletpilot.executor.recording_events import RecorderEvents
 from palletpilot.executor.recording_sim import SimFeed
 from palletpilot.geometry import SE2, SE3
-from palletpilot.geometry.fileio import dumps_json, strict_json
-from palletpilot.perception.alignment import AlignmentTolerances
+from palletpilot.geometry.fileio import dumps_json
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.specs import pallet_pose_at_node
 
 if TYPE_CHECKING:
     from palletpilot.control.follower import Follower
@@ -118,7 +115,7 @@ __all__ = [
 ]
 
 
-class Recorder:
+class Recorder(RecorderCamera, RecorderEvents):
     """Records one run (see the module docstring). `mcap`: the file to write (None: none); `port`: serve
     the channels live on host:port (None: no server, 0: any free port, see `port`); `wall`: stamps from
     wall time (else simulated time from `SIM_EPOCH_NS`). A server that cannot start raises
@@ -346,22 +343,6 @@ class Recorder:
         if self.sim is not None:
             self.sim.start(self, ns)
 
-    def wrap_grab(self, grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle]:
-        """`grab` whose frames (the ones perception asks for) are also recorded: RGB, depth, labels."""
-
-        def frame() -> FrameBundle:
-            f = grab()
-            if f is not self._last_frame:  # a frozen camera repeats its frame: recorded once
-                self._last_frame = f
-                self._guard("camera frame", lambda: self._frame(f))
-            return f
-
-        return frame
-
-    def wrap_segmenter(self, segmenter: Any) -> Any:
-        """A segmenter whose labels are also recorded (`/camera/segmentation`)."""
-        return RecordingSegmenter(segmenter, self)
-
     # -- what the run feeds ---------------------------------------------------------------------------
     def on_event(self, event: str, data: dict[str, Any], t: float) -> None:
         """A runner listener: the event as a Log (with its level) and as JSON; what it implies."""
@@ -427,100 +408,6 @@ class Recorder:
             "p99_ms": round(float(np.percentile(ms, 99)), 4),
             "max_ms": round(most * 1e3, 3),
         }
-
-    # -- events -------------------------------------------------------------------------------------------
-    def _event(self, event: str, data: dict[str, Any], t: float) -> None:
-        ns = self.ns(t)
-        self.ch_log.log(
-            Log(
-                timestamp=scene.stamp(ns),
-                level=level(event),
-                message=log_text(event, data),
-                name="palletpilot.executor",
-            ),
-            log_time=ns,
-        )
-        self._count("/log")
-        self.log_json("/events", {"t": round(t, 3), "event": event, **data}, ns)
-        handler = getattr(self, f"_on_{event}", None)
-        if handler is not None:
-            handler(data, t, ns)
-
-    def _on_task_start(self, data: dict[str, Any], t: float, ns: int) -> None:
-        self._task_index = int(data.get("index", -1))
-        self._task = {
-            "index": data.get("index"),
-            "type": data.get("type"),
-            "node": data.get("node"),
-            "result": "pending",
-            "reason": None,
-            "message": None,
-            "attempts": 0,
-            "start_s": t,
-            "end_s": t,
-            "states": [],
-            "record": {},
-        }
-
-    def _on_state_start(self, data: dict[str, Any], t: float, ns: int) -> None:
-        self._state = str(data.get("state", ""))
-        self._state_started[self._state] = t
-
-    def _on_state_end(self, data: dict[str, Any], t: float, ns: int) -> None:
-        state = str(data.get("state", ""))
-        if self._task is not None:
-            start = self._state_started.get(state, t)
-            self._task["states"].append(
-                {"state": state, "start_s": round(start, 3), "end_s": round(t, 3), "outcome": data.get("outcome")}
-            )
-
-    def _on_task_failed(self, data: dict[str, Any], t: float, ns: int) -> None:
-        if self._task is not None and self._task["reason"] is None:
-            self._task["reason"], self._task["message"] = data.get("reason"), data.get("message")
-
-    def _on_task_end(self, data: dict[str, Any], t: float, ns: int) -> None:
-        assert self.runner is not None
-        if self._task is None:
-            return
-        ctx = self.runner.ctx
-        self._task.update(
-            result=data.get("result"),
-            reason=data.get("reason"),
-            attempts=ctx.attempts,
-            end_s=t,
-            record=strict_json(ctx.record),
-        )
-        self.log_json("/report/task", self._task, ns)
-        self._task, self._state = None, ""
-
-    def _on_calibrated(self, data: dict[str, Any], t: float, ns: int) -> None:
-        assert self.runner is not None
-        calibration = self.runner.ctx.calibration
-        if calibration is None:
-            return
-        self._calibration = calibration.T_forklift_camera
-        self.log_json("/perception/calibration", calibration.to_json(), ns)
-
-    def _on_pallet_estimate(self, data: dict[str, Any], t: float, ns: int) -> None:
-        assert self.runner is not None
-        ctx = self.runner.ctx
-        est = ctx.estimated_pallet
-        node = ctx.roadmap.node(str(data.get("against_node") or ctx.pallet_node))
-        if est is None:
-            return
-        st = ctx.settings
-        tol = AlignmentTolerances.from_geometry(
-            ctx.forks,
-            ctx.pallet_type,
-            lateral_margin_m=st.lateral_margin,
-            longitudinal_margin_m=st.longitudinal_margin,
-            yaw_limit_deg=st.yaw_limit_deg,
-        )
-        nominal = pallet_pose_at_node(node.pose, node.height)
-        entity = scene.estimate_entity(len(self._estimates), data, est, nominal, tol, ctx.pallet_type, ns)
-        self._estimates.append(entity)
-        update = SceneUpdate(entities=list(self._estimates))
-        self.log_scene("/scene/pallet_estimates", update, ns)
 
     # -- ticks --------------------------------------------------------------------------------------------
     def _tick(self) -> None:
@@ -651,38 +538,6 @@ class Recorder:
         self.log_json("/vehicle/beams", {"left_m": finite(left, 4), "right_m": finite(right, 4), "read_by": who}, ns)
         update = scene.beams_update(self._forks, self.vehicle.fork_height, (left, right), ns)
         self.log_scene("/scene/beams", update, ns)
-
-    # -- camera -------------------------------------------------------------------------------------------
-    def _frame(self, f: FrameBundle) -> None:
-        ns = self.ns()
-        stamp_ns = ns if f.stamp_s is None else self._epoch_ns + round(f.stamp_s * 1e9)
-        h, w = f.depth.shape
-        self.ch_caminfo.log(camera.camera_info(f.K, w, h, stamp_ns), log_time=ns)
-        self._count("/camera/calibration")
-        if f.rgb is not None:
-            self.ch_rgb.log(camera.compressed_image(camera.jpeg(f.rgb), stamp_ns), log_time=ns)
-            self._count("/camera/rgb")
-            with self._lock:
-                self._frame_stamps = {id(f.rgb): stamp_ns}  # the segmenter's next call belongs to it
-        self.ch_depth.log(camera.depth_cloud(f.depth, f.K, f.rgb, stamp_ns, DEPTH_STRIDE), log_time=ns)
-        self._count("/camera/depth")
-        if f.labels is not None:
-            self._overlay_now(f.rgb, f.labels, stamp_ns)
-
-    def _overlay(self, rgb: np.ndarray, labels: np.ndarray) -> None:
-        """Labels perception segmented from `rgb` (any thread)."""
-
-        def record() -> None:
-            with self._lock:
-                stamp_ns = self._frame_stamps.get(id(rgb))
-            self._overlay_now(rgb, labels, self.ns() if stamp_ns is None else stamp_ns)
-
-        self._guard("segmentation", record)
-
-    def _overlay_now(self, rgb: np.ndarray | None, labels: np.ndarray, stamp_ns: int) -> None:
-        image = camera.segmentation_overlay(rgb, labels)
-        self.ch_seg.log(camera.compressed_image(camera.jpeg(image), stamp_ns), log_time=self.ns())
-        self._count("/camera/segmentation")
 
     # -- the end ------------------------------------------------------------------------------------------
     def _finish(self, success: bool, extra: dict[str, Any] | None) -> None:

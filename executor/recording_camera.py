@@ -2,13 +2,23 @@
 the depth as a point cloud, the intrinsics; Foxglove well-known messages in the `camera` frame (the
 optical frame: x right, y down, z out of the lens).
 
-Public API: `jpeg`, `segmentation_overlay`, `compressed_image`, `depth_cloud`, `camera_info`, `CLASS_COLOURS`.
+`RecorderCamera`, a base of `executor.recording.Recorder`, records the frames perception asks for
+(`wrap_grab`: `/camera/rgb`, `/camera/depth`, `/camera/calibration`, and labels a frame brings) and the
+labels it segments (`wrap_segmenter`: `/camera/segmentation`, stamped as the frame they belong to).
+
+Public API: `jpeg`, `segmentation_overlay`, `compressed_image`, `depth_cloud`, `camera_info`, `CLASS_COLOURS`,
+`RecorderCamera` (for `Recorder` only).
 """
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
+from typing import Any
+
 import cv2
 import numpy as np
+from foxglove.channels import CameraCalibrationChannel, CompressedImageChannel, PointCloudChannel
 from foxglove.messages import (
     CameraCalibration,
     CompressedImage,
@@ -20,7 +30,9 @@ from foxglove.messages import (
     Vector3,
 )
 
+from palletpilot.executor.recording_channels import DEPTH_STRIDE, RecordingSegmenter
 from palletpilot.executor.recording_scene import CAMERA, stamp
+from palletpilot.perception.frames import FrameBundle
 
 CLASS_COLOURS = np.array(
     [
@@ -121,3 +133,66 @@ def camera_info(K: np.ndarray, width: int, height: int, ns: int) -> CameraCalibr
         R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         P=p,
     )
+
+
+class RecorderCamera:
+    """The camera side of `Recorder` (module docstring); the attributes below are the recorder's."""
+
+    ch_rgb: CompressedImageChannel
+    ch_seg: CompressedImageChannel
+    ch_depth: PointCloudChannel
+    ch_caminfo: CameraCalibrationChannel
+    _lock: threading.Lock
+    _epoch_ns: int
+    _frame_stamps: dict[int, int]
+    _last_frame: FrameBundle | None
+    ns: Callable[..., int]
+    _count: Callable[[str], None]
+    _guard: Callable[[str, Callable[[], None]], None]
+
+    def wrap_grab(self, grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle]:
+        """`grab` whose frames (the ones perception asks for) are also recorded: RGB, depth, labels."""
+
+        def frame() -> FrameBundle:
+            f = grab()
+            if f is not self._last_frame:  # a frozen camera repeats its frame: recorded once
+                self._last_frame = f
+                self._guard("camera frame", lambda: self._frame(f))
+            return f
+
+        return frame
+
+    def wrap_segmenter(self, segmenter: Any) -> Any:
+        """A segmenter whose labels are also recorded (`/camera/segmentation`)."""
+        return RecordingSegmenter(segmenter, self)
+
+    def _frame(self, f: FrameBundle) -> None:
+        ns = self.ns()
+        stamp_ns = ns if f.stamp_s is None else self._epoch_ns + round(f.stamp_s * 1e9)
+        h, w = f.depth.shape
+        self.ch_caminfo.log(camera_info(f.K, w, h, stamp_ns), log_time=ns)
+        self._count("/camera/calibration")
+        if f.rgb is not None:
+            self.ch_rgb.log(compressed_image(jpeg(f.rgb), stamp_ns), log_time=ns)
+            self._count("/camera/rgb")
+            with self._lock:
+                self._frame_stamps = {id(f.rgb): stamp_ns}  # the segmenter's next call belongs to it
+        self.ch_depth.log(depth_cloud(f.depth, f.K, f.rgb, stamp_ns, DEPTH_STRIDE), log_time=ns)
+        self._count("/camera/depth")
+        if f.labels is not None:
+            self._overlay_now(f.rgb, f.labels, stamp_ns)
+
+    def _overlay(self, rgb: np.ndarray, labels: np.ndarray) -> None:
+        """Labels perception segmented from `rgb` (any thread)."""
+
+        def record() -> None:
+            with self._lock:
+                stamp_ns = self._frame_stamps.get(id(rgb))
+            self._overlay_now(rgb, labels, self.ns() if stamp_ns is None else stamp_ns)
+
+        self._guard("segmentation", record)
+
+    def _overlay_now(self, rgb: np.ndarray | None, labels: np.ndarray, stamp_ns: int) -> None:
+        image = segmentation_overlay(rgb, labels)
+        self.ch_seg.log(compressed_image(jpeg(image), stamp_ns), log_time=self.ns())
+        self._count("/camera/segmentation")
