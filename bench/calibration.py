@@ -11,13 +11,15 @@ and the mount angles tilt, pan, roll (deg). Writes a CSV of every result and two
 paper's Figures 8 and 9 to `--out`.
 
 Fork families (`--families`; the simulator renders the true blades, calibration reads the file):
-- `box`: box blades, as `missions/forks.yaml` states them;
+- `box`: box blades, the forks file stating them (`missions/forks.yaml` plus `taper_length: 0`: a user
+  who checked that the blades are plain boxes; without it the profile is unknown and shallow mounts warn);
 - `taper_nominal`: ISO 2328 blades whose top face thins over the last 50-150 mm to a 12-25 mm tip
   (random per pose), with the forks file stating only the nominal box (a user who has not measured
   the taper): the calibration must warn that the tips cannot be trusted (`tip_trusted` false);
 - `taper_measured`: the same blades with their profile in the forks file (`forks measure`);
 - `taper_bottom`: blades whose bottom face slopes up (top flat to the tip), nominal box in the file.
-Per family and method: successes, failures, untrusted tips (warnings), and error statistics.
+Per family and method: successes, failures, untrusted tips (warnings), poses beyond the goal (`GOAL_MM`,
+`GOAL_DEG` on any axis) with trusted tips (`beyond_goal_trusted`: must be 0), and error statistics.
 
 Depth tare (`--tare`): the simulated D435 has a depth scale error (+-0.3 %, fixed per camera), which no
 frame of the forks and the floor reveals: it moves the camera back by the error times the fork-tip
@@ -57,6 +59,8 @@ FAMILIES = ("box", "taper_nominal", "taper_measured", "taper_bottom")
 TARE_MODES = ("none", "laser", "both")
 LASER_ERROR_M = 0.0015
 """Accuracy of the laser distance meter that measures the tare wall's distance (uniform +-)."""
+GOAL_MM, GOAL_DEG = 3.0, 0.2
+"""The calibration's goal per axis: translation (mm) and mount angles (deg); a pose beyond it must warn."""
 AXES = ("err_x_mm", "err_y_mm", "err_z_mm", "err_tilt_deg", "err_pan_deg", "err_roll_deg")
 
 
@@ -126,16 +130,22 @@ def _errors(T_est: SE3, T_true: SE3) -> list[float]:
 
 
 def _blades(family: str, nominal: ForkGeometry, rng: np.random.Generator) -> tuple[ForkGeometry, ForkGeometry]:
-    """(the true blades the simulator renders, the forks file calibration reads) of one pose."""
+    """(the true blades the simulator renders, the forks file calibration reads) of one pose.
+
+    The files of `box` state the profile (`taper_length: 0`); those of `taper_nominal` and `taper_bottom`
+    leave it out (unknown, `ForkGeometry.profile_stated` false), whatever `nominal`'s file says.
+    """
+    box = nominal.model_dump(exclude_unset=True, exclude={"taper_length", "tip_thickness", "taper_side"})
     if family == "box":
-        return nominal, nominal
+        stated = ForkGeometry.model_validate({**box, "taper_length": 0.0})
+        return stated, stated
     taper = {
         "taper_length": round(float(rng.uniform(0.05, 0.15)), 4),
         "tip_thickness": round(float(rng.uniform(0.012, 0.025)), 4),
         "taper_side": "bottom" if family == "taper_bottom" else "top",
     }
-    true = ForkGeometry.model_validate({**nominal.model_dump(), **taper})
-    return true, true if family == "taper_measured" else nominal
+    true = ForkGeometry.model_validate({**box, **taper})
+    return true, true if family == "taper_measured" else ForkGeometry.model_validate(box)
 
 
 def _yaml(forks: ForkGeometry) -> str:
@@ -215,21 +225,26 @@ def _calibrate_one(frame: FrameBundle, forks: ForkGeometry, method: Method, sim:
         row.update(dict(zip(AXES, _errors(calib.T_forklift_camera, sim.T_forklift_camera_true), strict=True)))
         row["tip_trusted"] = bool(calib.quality.get("tip_trusted", True))
         row["beyond_tip_points"] = calib.quality.get("beyond_tip_points", 0)
+        row["tip_view_deg"] = calib.quality.get("tip_view_deg", math.nan)
         row["error"] = ""
     except CalibrationError as exc:
         row["runtime_ms"] = (time.perf_counter() - t0) * 1e3
         row.update(dict.fromkeys(AXES, math.nan))
         row["tip_trusted"] = False
         row["beyond_tip_points"] = 0
+        row["tip_view_deg"] = math.nan
         row["error"] = str(exc)
     return row
 
 
 def _stats(mine: list[dict]) -> dict:
-    """Successes, failures, untrusted tips; p95 of |error| per axis (all successes, and the trusted ones)."""
+    """Successes, failures, untrusted tips, trusted poses beyond the goal; p95 of |error| per axis (all, trusted)."""
     ok = [r for r in mine if not r["error"]]
     trusted = [r for r in ok if r["tip_trusted"]]
     stats: dict = {"succeeded": len(ok), "failed": len(mine) - len(ok), "tip_untrusted": len(ok) - len(trusted)}
+    stats["beyond_goal_trusted"] = sum(
+        any(abs(r[a]) > (GOAL_MM if a.endswith("_mm") else GOAL_DEG) for a in AXES) for r in trusted
+    )
     for axis in AXES:
         e = np.array([r[axis] for r in ok])
         if len(e) == 0:

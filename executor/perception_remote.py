@@ -381,7 +381,8 @@ class LocalService:
         """Start the service and wait for its ready line; the endpoint (`tcp/127.0.0.1:PORT`)."""
         self._folder = Path(tempfile.mkdtemp(prefix="palletpilot-perception-"))
         forks, pallet = self._folder / "forks.json", self._folder / "pallet.json"
-        forks.write_text(dumps_json(self.forks.model_dump(mode="json")))
+        # Only the fields the run's file set: a profile it leaves unknown stays unknown in the service.
+        forks.write_text(dumps_json(self.forks.model_dump(mode="json", exclude_unset=True)))
         pallet.write_text(dumps_json(self.pallet.model_dump(mode="json")))
         problem = ""
         for _ in range(3):  # another process may take the free port before the service binds it

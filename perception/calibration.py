@@ -28,7 +28,10 @@ weak tip features, height deviations, an assumed zero roll):
   - several frames (also with raised forks, `fork_height` in the bundle) are fitted together; the
     result is always for lift height 0;
   - quality: residual RMS per kind, inlier counts, frames used. Missing features or residuals above
-    limits raise `CalibrationError` with the reason. `Calibrator` keeps the last good calibration.
+    limits raise `CalibrationError` with the reason. `Calibrator` keeps the last good calibration;
+  - tips: `tip_trusted` false with a warning when fork pixels stand beyond the fitted tips (`_tip_check`),
+    or when the forks file leaves the blade profile unknown and the camera looks down at the tips less
+    steeply than a tapered top may slope, so that a taper would hide (`_tip_view_check`).
 """
 
 from __future__ import annotations
@@ -76,6 +79,12 @@ class Limits:
 LIMITS = Limits()
 BEYOND_MIN_M, BEYOND_MAX_M = 0.02, 0.25
 """Fork pixels this far ahead of the fitted tips (m) mean that the tips cannot be trusted (`_tip_check`)."""
+STEEPEST_TAPER_M = (0.05, 0.012)
+"""(length, tip thickness) in m of the steepest top taper assumed when the forks file does not state the
+profile: ISO 2328-like blades thin over their last 50-150 mm to a 12-25 mm tip (`_tip_view_check`)."""
+GRAZING_MARGIN_DEG = 5.0
+"""A sloping top face seen within this angle (deg) of grazing covers too few image rows to show beyond
+the tips (`bench calibration`, taper_nominal: 8-13 pixels at 0.5-3 deg, about the noise of box blades)."""
 _RNG_SEED = 0  # RANSAC and subsampling are seeded: same frames, same result
 
 
@@ -428,17 +437,18 @@ def _model_fit(
     T, _, _, _ = fit_round(T0, True, False)
     T, fork_sets, edge_sets, stats = fit_round(T, False, False)
     quality, warnings = _quality(data, floors, lifts, fork_sets, edge_sets, T, forks, limits, where, stats)
-    if not quality.get("tip_trusted", True):
-        return T, quality, warnings
-    # The tips are where the forks file says: once more with the mixed pixels at depth jumps set apart.
-    try:
-        T2, fork_sets, edge_sets, stats = fit_round(T, False, True)
-        quality2, warnings2 = _quality(data, floors, lifts, fork_sets, edge_sets, T2, forks, limits, where, stats)
-    except CalibrationError:  # too few edges left, or residuals above the limits: keep the fit as it was
-        return T, quality, warnings
-    if not quality2.get("tip_trusted", True):
-        return T, quality, warnings
-    return T2, quality2, warnings2
+    if quality.get("tip_trusted", True):
+        # The tips are where the forks file says: once more with the mixed pixels at depth jumps set apart.
+        try:
+            T2, fork_sets2, edge_sets2, stats = fit_round(T, False, True)
+            quality2, warnings2 = _quality(data, floors, lifts, fork_sets2, edge_sets2, T2, forks, limits, where, stats)
+        except CalibrationError:  # too few edges left, or residuals above the limits: keep the fit as it was
+            pass
+        else:
+            if quality2.get("tip_trusted", True):
+                T, quality, warnings, edge_sets = T2, quality2, warnings2, edge_sets2
+    _tip_view_check(edge_sets, T, forks, quality, warnings)
+    return T, quality, warnings
 
 
 def _quality(
@@ -549,6 +559,61 @@ def _tip_check(
         "frames at a few fork heights) and calibrate with that file"
     )
     return out
+
+
+def _tip_view_deg(edge_sets: Sequence[_Edges], T: SE3) -> float | None:
+    """How steeply (deg below the horizontal) the camera looks down at the fork tips; None without tip edges.
+
+    The median over the tip edge rays of their descent along the forks, `atan(-dz / dx)` of the ray
+    direction in the forklift frame (x forward, z up): a top face that slopes down to the tip more
+    steeply than this faces away from the camera.
+    """
+    rays = [e.tips for e in edge_sets if len(e.tips)]
+    if not rays:
+        return None
+    d = np.vstack(rays) @ T.R.T
+    return float(np.degrees(np.median(np.arctan2(-d[:, 2], d[:, 0]))))
+
+
+def _tip_view_check(
+    edge_sets: Sequence[_Edges], T: SE3, forks: ForkGeometry, quality: dict, warnings: list[str]
+) -> None:
+    """Could the frames have shown a tapered top face? If not and the forks file does not say, the tips are unverified.
+
+    A top face that slopes down to the tip more steeply than the camera looks down at it (`_tip_view_deg`)
+    faces away from the camera: the full-thickness top then ends where the taper starts, exactly as a box
+    tip there would, and the ray grazing that edge passes over the thinner rest onto the same floor. Only
+    the narrow strip of the blades' inner side faces differs, a few pixels per fork, no more than the
+    noise along a box tip (`_tip_check` counts them, but cannot rely on them). So when the file leaves the
+    profile unknown (`ForkGeometry.profile_stated`) and the view at the tips is shallower than the
+    steepest taper assumed (`STEEPEST_TAPER_M` on this blade thickness) plus `GRAZING_MARGIN_DEG`, the
+    tips are not trusted and a warning names the angles and what to measure. Adds `tip_view_deg` (and
+    `tip_view_needed_deg` when it applies) to `quality`; a fit already untrusted is left as it is.
+    """
+    view = _tip_view_deg(edge_sets, T)
+    if view is None:
+        return
+    quality["tip_view_deg"] = round(view, 2)
+    if forks.profile_stated or not quality.get("tip_trusted", True):
+        return
+    length, tip = STEEPEST_TAPER_M
+    slope = math.degrees(math.atan2(max(forks.thickness - tip, 0.0), length))
+    needed = slope + GRAZING_MARGIN_DEG
+    quality["tip_view_needed_deg"] = round(needed, 2)
+    if view >= needed:
+        return
+    quality["tip_trusted"] = False
+    warnings.append(
+        f"fork tips cannot be verified: the camera looks down at the tips at {view:.0f} deg, and the forks file "
+        f"does not state the blade profile. A top face tapering to the tip more steeply than that (ISO 2328-like "
+        f"blades slope up to about {slope:.0f} deg over the last {length * 1e3:.0f}-150 mm) faces away from the "
+        "camera and looks like a box tip where the taper starts, so the camera's forward position x may be off by "
+        "the taper's length (50-150 mm). Measure the blade profile near the tips (taper_length, tip_thickness, "
+        "taper_side: with a ruler, or `palletpilot forks measure FRAME.npz ... --forks FORKS.yaml --out "
+        f"NEW_FORKS.yaml` from a mount looking down at the tips at more than {needed:.0f} deg) and calibrate with "
+        "that file, or, after checking that the blades are plain boxes to the tip, state `taper_length: 0` in "
+        "the forks file"
+    )
 
 
 # -- method `paper` ---------------------------------------------------------------------------------

@@ -87,6 +87,8 @@ class ForkGeometry(FileModel):
     50-150 mm), the `taper_side` face sloping (`top`: the top face descends to the tip, the bottom
     stays flat; `bottom`: the bottom rises). `heel_radius` is the inner radius of the bend where the
     blade meets the shank: a fillet on the top face at the heel. `top_z` and `bottom_z` give the faces.
+    A file that gives `taper_length` states the profile (`taper_length: 0`: measured, plain boxes); one
+    that leaves it out leaves the profile unknown (`profile_stated`).
     """
 
     model_config = ConfigDict(frozen=True)
@@ -97,7 +99,9 @@ class ForkGeometry(FileModel):
     inner_gap: _Number = Field(description="gap between the inner sides of the two forks (m)")
     tip_x: _Number = Field(description="x of the fork tips in the forklift frame (m)")
     taper_length: _Number = Field(
-        0.0, validate_default=True, description="length (m) over which the blade thins towards the tip; 0: none"
+        0.0,
+        validate_default=True,
+        description="length (m) over which the blade thins towards the tip; 0: none (stated: measured boxes)",
     )
     tip_thickness: _Number | None = Field(
         None, validate_default=True, description="blade thickness at the tip (m); required with a taper"
@@ -188,6 +192,15 @@ class ForkGeometry(FileModel):
     def tapered(self) -> bool:
         """True when the blade thins towards the tip (`taper_length` > 0 and a thinner tip)."""
         return self.taper_length > 0.0 and self.tip_thickness is not None and self.tip_thickness < self.thickness
+
+    @property
+    def profile_stated(self) -> bool:
+        """True when the forks file states the blade profile (`taper_length`, 0 for plain box blades).
+
+        False: the file leaves it at its default, so the profile is unknown (the blades are taken as boxes,
+        but a tapered top face may hide from a shallow camera: `perception.calibration._tip_view_check`).
+        """
+        return "taper_length" in self.model_fields_set
 
     @property
     def taper_start_x(self) -> float:
