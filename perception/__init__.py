@@ -12,7 +12,8 @@ Public API:
   `ENTRY_GAP_M` ahead of the fork heels).
 - `perception.calibration`: `calibrate` (`T_forklift_camera` from fork and floor frames; `model` and
   `paper` methods), `Calibrator` (keeps the last good calibration), `CalibrationError`, warnings when
-  the fork tips cannot be trusted; `perception.calibration_paper`: the paper's method (the baseline);
+  the fork tips cannot be trusted; `perception.calibration_features`: the evidence it fits (floor and fork
+  points, the forks' edge rays); `perception.calibration_paper`: the paper's method (the baseline);
   `perception.fork_profile`: `forks measure`, the blade's taper estimated from frames of the forks;
   `perception.calibration_io`: `Calibration` and its JSON; `perception.view`: `pickup_view` (does a
   mount show the entry face and a load at the Pickup's distances).

@@ -20,14 +20,14 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE3
+from palletpilot.perception.calibration_features import _RNG_SEED
 from palletpilot.perception.calibration_io import R_LEVEL
 from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.specs import ForkGeometry
 
 if TYPE_CHECKING:
-    from palletpilot.perception.calibration import Limits, _FrameData
-
-_RNG_SEED = 0  # RANSAC is seeded: same frames, same result
+    from palletpilot.perception.calibration import Limits
+    from palletpilot.perception.calibration_features import _FrameData
 
 
 def _vanishing_point(fd: _FrameData) -> np.ndarray:

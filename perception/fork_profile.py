@@ -120,7 +120,8 @@ def _points(frame: FrameBundle, T: SE3, forks: ForkGeometry) -> np.ndarray:
 
 def _tip_rays(frames: Sequence[FrameBundle], T: SE3, forks: ForkGeometry) -> list[np.ndarray]:
     """Camera rays through the blades' far ends (depth edges against the floor), per frame."""
-    from palletpilot.perception.calibration import LIMITS, _edge_rays, _frame_data
+    from palletpilot.perception.calibration import LIMITS
+    from palletpilot.perception.calibration_features import _edge_rays, _frame_data
 
     return [_edge_rays(_frame_data(f, "frame", LIMITS), T, forks, forks.tip_x, SEARCH_M).tips for f in frames]
 
