@@ -11,7 +11,6 @@ Public API: `RecorderEvents` (for `Recorder` only).
 
 from __future__ import annotations
 
-import threading
 from typing import TYPE_CHECKING, Any
 
 from foxglove.channels import LogChannel
@@ -35,7 +34,6 @@ class RecorderEvents:
 
     ch_log: LogChannel
     runner: Runner | None
-    _lock: threading.Lock
     _calibration: SE3 | None
     _state: str
     _task_index: int
