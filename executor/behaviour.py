@@ -91,6 +91,11 @@ class Settings:
     lift_delta: float = 0.08  # lift above the entry height to carry
     calibration_retries: int = 1
     frames_per_estimate: int = 3  # the pallet stands still: averaging frames (and localization fixes) cuts noise
+    # ... and rounds of that many more while the fused yaw 1-sigma is above `estimate_yaw_sigma_deg`, up to
+    # `max_frames_per_estimate` frames (`perception.pallet.FramePolicy`): a far loaded face is never judged
+    # on three uncertain frames.
+    max_frames_per_estimate: int = 9
+    estimate_yaw_sigma_deg: float = 0.25
     beam_margin: float = 0.10  # a clear beam reaches this far short of the pallet's back, at least
     # Re-plan: when no drivable curve joins the node the truck backed off to and the new pre-pallet node,
     # try nodes further back along the route that reached the pre-pallet node: this many nodes in all.

@@ -33,7 +33,7 @@ from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.pallet import PalletEstimate, fuse_estimates
+from palletpilot.perception.pallet import FramePolicy, PalletEstimate, fuse_estimates
 from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
@@ -130,7 +130,8 @@ class EstimatePallet(Behaviour):
     """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned.
 
     Takes `frames_per_estimate` frames on consecutive ticks (each with its localization fix) while the
-    truck stands, estimates them off the loop and fuses the estimates.
+    truck stands, estimates them off the loop and fuses the estimates; while the fused yaw is still
+    uncertain, another round of frames, up to `max_frames_per_estimate` (`_frame_policy`).
     """
 
     timeout_s = 20.0
@@ -139,6 +140,10 @@ class EstimatePallet(Behaviour):
         ctx.vehicle.stop()
         ctx.attempts += 1
         self.frames: list[tuple[FrameBundle, SE2, float]] = []
+        self.estimated = 0  # frames of `self.frames` already estimated (in earlier rounds)
+        self.estimates: list[PalletEstimate] = []  # of those frames, over the rounds
+        self.errors: list[str] = []
+        self.wanted = max(1, ctx.settings.frames_per_estimate)
         self.job: Job[tuple[list[PalletEstimate], list[str]]] | None = None
         self.blocked_since: float | None = None  # something stood in the entry volume since (task time, s)
         self.look_at = 0.0  # task time (s) of the next look while blocked
@@ -147,20 +152,20 @@ class EstimatePallet(Behaviour):
     def update(self, ctx: Context) -> str | None:
         perception, calibration = ctx.perception, ctx.calibration
         assert perception is not None and calibration is not None
-        wanted = max(1, ctx.settings.frames_per_estimate)
         if self.job is None:
             if abs(ctx.vehicle.speed) > STANDING_SPEED:
                 ctx.vehicle.stop()
-                self.frames.clear()
+                self._restart(ctx)
                 return None
             if ctx.now() < self.look_at:
                 return None
             frame = ctx.frame()
             if frame is not None:
                 self.frames.append((frame, ctx.vehicle.localization(), _frame_time(ctx, frame)))
-            if len(self.frames) < wanted:
+            if len(self.frames) < self.wanted:
                 return None
-            taken = list(self.frames)
+            taken = self.frames[self.estimated :]
+            self.estimated = len(self.frames)
             expected, pallet = _expected_pallet(ctx), ctx.pallet_type
 
             def estimate() -> tuple[list[PalletEstimate], list[str]]:
@@ -173,7 +178,7 @@ class EstimatePallet(Behaviour):
                 return estimates, errors
 
             self.job = ctx.jobs.submit(
-                "estimate_pallet", estimate, latency_s=wanted * ctx.settings.estimate_latency_s, delay_of=perception
+                "estimate_pallet", estimate, latency_s=len(taken) * ctx.settings.estimate_latency_s, delay_of=perception
             )
             return None
         if not self.job.poll(ctx.clock_now()):
@@ -181,14 +186,36 @@ class EstimatePallet(Behaviour):
         job, self.job = self.job, None
         if _stale(ctx, min(t for _, _, t in self.frames)):
             ctx.log("perception_result_discarded", state="estimate_pallet", reason="the vehicle moved after the frames")
-            self.frames.clear()
+            self._restart(ctx)
             return None
         estimates, errors = job.result()
-        if not estimates:
+        self.estimates += estimates
+        self.errors += errors
+        if not self.estimates:
+            why = self.errors[-1] if self.errors else "no pallet estimate"
             if self._blocked_in_front(ctx):
                 return None  # something stands before the pallet: look again later
-            raise TaskFailed(PALLET_NOT_FOUND, errors[-1] if errors else "no pallet estimate")
-        return self._judge(ctx, fuse_estimates(estimates))
+            raise TaskFailed(PALLET_NOT_FOUND, why)
+        fused = fuse_estimates(self.estimates)
+        more = _frame_policy(ctx).more_frames(fused, len(self.frames))
+        if more:
+            self.wanted = len(self.frames) + more
+            ctx.log(
+                "estimate_more_frames",
+                frames=len(self.frames),
+                more=more,
+                yaw_sigma_deg=round(math.degrees(fused.spread.yaw_rad), 3),
+                limit_deg=ctx.settings.estimate_yaw_sigma_deg,
+            )
+            return None
+        return self._judge(ctx, fused)
+
+    def _restart(self, ctx: Context) -> None:
+        """Forget the frames and estimates taken so far (the truck moved): start the first round again."""
+        self.frames.clear()
+        self.estimated = 0
+        self.estimates, self.errors = [], []
+        self.wanted = max(1, ctx.settings.frames_per_estimate)
 
     def _blocked_in_front(self, ctx: Context) -> bool:
         """No pallet seen: is a person or an object standing in the entry volume before the pallet node
@@ -197,7 +224,7 @@ class EstimatePallet(Behaviour):
         node = ctx.roadmap.node(ctx.pallet_node)
         spec = entry_volume_at(ctx, pallet_pose_at_node(node.pose, node.height).to_se2())
         frame = self.frames[-1][0] if self.frames else None
-        self.frames.clear()
+        self._restart(ctx)
         if spec is None or frame is None:
             return False
         look = ctx.perception.check_volume(frame, ctx.calibration, spec[0])
@@ -252,6 +279,13 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
+
+
+def _frame_policy(ctx: Context) -> FramePolicy:
+    """The Settings' frames per estimate as a `FramePolicy`."""
+    st = ctx.settings
+    per = max(1, st.frames_per_estimate)
+    return FramePolicy(per, max(per, st.max_frames_per_estimate), math.radians(st.estimate_yaw_sigma_deg))
 
 
 def _expected_pallet(ctx: Context) -> SE2:

@@ -18,7 +18,8 @@ Public API:
   `perception.calibration_io`: `Calibration` and its JSON; `perception.view`: `pickup_view` (does a
   mount show the entry face and a load at the Pickup's distances).
 - `perception.pallet`: `estimate_pallet` (`T_forklift_pallet` / `T_world_pallet` with a spread from one
-  labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `PalletNotFound` (reason),
+  labelled RGB-D frame), `fuse_estimates` (several frames of one standpoint), `FramePolicy` (how many
+  frames a standpoint takes: more while the fused yaw is uncertain), `PalletNotFound` (reason),
   `PalletEstimate`, `PalletEstimatorConfig`; its pieces: `perception.pallet_estimate` (tuning, result,
   failure, fusion), `perception.pallet_face` (rays and the entry-face plane), `perception.pallet_model`
   (the pallet model and its scores, the pocket check), `perception.pallet_deck` (yaw from the deck);

@@ -39,7 +39,10 @@ Method, in the forklift frame with the camera at `calibration.T_forklift_camera_
 5. **Deck.** Where the camera sees the top deck (an empty pallet from above), the deck boards' side
    edges, lines along the whole pallet length, refine the yaw (`_deck_yaw`): each deck pixel is
    predicted on a board or past its edge for a yaw turned about the entry-face centre, scored in
-   inverse depth together with the face fit's own yaw term. A load on the deck switches it off.
+   inverse depth together with the face fit's own yaw term. That centre comes from the pockets and is
+   good to a few millimetres, so each yaw takes its best sideways shift of the centre within that
+   uncertainty (at a cost); the lateral position itself stays the pockets'. A load on the deck
+   switches it off.
 
 Geometry, not label boundaries, places the edges: a pixel's evidence is its depth against the model.
 `fuse_estimates` combines the estimates of several frames from one standpoint (inverse-variance
@@ -49,7 +52,7 @@ the pocket edges' scatter and pixel footprint.
 
 Public API: `estimate_pallet`, and re-exported from `perception.pallet_estimate` (import them from
 here): `PalletEstimate`, `PalletSpread`, `PalletEstimatorConfig`, `DEFAULT_CONFIG`, `PalletNotFound`,
-`NotFoundReason`, `fuse_estimates`, `PALLET_CLASSES`.
+`NotFoundReason`, `fuse_estimates`, `FramePolicy`, `PALLET_CLASSES`.
 
 This module runs the steps; the pieces live in `perception.pallet_estimate` (tuning, result, failure,
 fusion), `perception.pallet_face` (pixels as rays, the face plane, its fits and the spread: steps 1
@@ -75,6 +78,7 @@ from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
     DEFAULT_CONFIG,
     PALLET_CLASSES,
+    FramePolicy,
     NotFoundReason,
     PalletEstimate,
     PalletEstimatorConfig,
@@ -114,6 +118,7 @@ from palletpilot.perception.specs import PalletType
 __all__ = [
     "DEFAULT_CONFIG",
     "PALLET_CLASSES",
+    "FramePolicy",
     "NotFoundReason",
     "PalletEstimate",
     "PalletEstimatorConfig",
@@ -209,8 +214,9 @@ def estimate_pallet(
     # Two pocket centres; floored at half a pixel footprint, which matches the benchmark's scatter.
     sigma_s = max(edge_sigma / math.sqrt(2.0), 0.5 * footprint)
 
-    # 5. The top deck's board edges, where the camera sees the deck: turn the plane about the face centre.
-    deck = _deck_yaw(frame, T_cf, valid, model, plane, s0, z0, sigma, cfg) if cfg.deck_yaw else None
+    # 5. The top deck's board edges, where the camera sees the deck: turn the plane about the face centre
+    # (the yaw is the deck's best over the centre's lateral uncertainty; the centre stays the pockets').
+    deck = _deck_yaw(frame, T_cf, valid, model, plane, s0, z0, sigma, cfg, sigma_s) if cfg.deck_yaw else None
     if deck is not None:
         centre = plane.point(cam, s0)
         n_new = np.array([math.cos(deck.psi), math.sin(deck.psi), 0.0])
@@ -242,6 +248,7 @@ def estimate_pallet(
             "plane_residual_rms": float(np.sqrt(np.mean(res[np.abs(res) < trunc * sigma] ** 2))),
             "deck_pixels": 0 if deck is None else deck.n_pixels,
             "deck_height_m": None if deck is None else deck.deck_height,
+            "deck_shift_m": None if deck is None else deck.shift,
             **found,
         },
     )

@@ -29,12 +29,15 @@ _ON_DECK_CLASSES = (int(SemanticClass.CARGO), int(SemanticClass.OTHER_OBJECT), i
 
 @dataclass(frozen=True)
 class _DeckYaw:
-    """Result of `_deck_yaw`: the yaw (rad) and its 1-sigma (rad), the deck pixels used, the deck height (m)."""
+    """Result of `_deck_yaw`: the yaw (rad) and its 1-sigma (rad), the deck pixels used, the deck height (m),
+    and the sideways shift (m, along the face's lateral unit vector `_Plane.e`) of the face centre that
+    the best yaw took."""
 
     psi: float
     sigma_psi: float
     n_pixels: int
     deck_height: float
+    shift: float = 0.0
 
 
 class _DeckPixels(NamedTuple):
@@ -130,6 +133,7 @@ def _deck_yaw(
     z0: float,
     sigma: float,
     cfg: PalletEstimatorConfig,
+    sigma_s: float = 0.0,
 ) -> _DeckYaw | None:
     """Yaw from the top deck's board edges, fused with the entry face's yaw; None where too little deck is seen.
 
@@ -142,10 +146,18 @@ def _deck_yaw(
     ((psi - psi_face) / sigma_face)^2. Occluders (a load on the deck: labelled cargo, or nearer than
     the deck) and pixels next to depth jumps are left out; label boundaries never place an edge.
 
+    The face centre the pallet turns about comes from the pockets and is only good to `sigma_s` (m,
+    1-sigma, lateral): a centre a few millimetres off would otherwise be made up for by a turn (at
+    0.8 m deck length, 8 mm is 0.6 deg). So a hypothesis also shifts the pallet sideways by `u`,
+    within 3 `sigma_s` (at most `deck_shift_max_m`), at the cost (u / sigma_s)^2; the yaw's cost is the
+    least over the shifts (a profile likelihood). The best hypothesis's shift is reported (`shift`) but
+    not applied: the deck's board edges place the pallet sideways less reliably than they turn it
+    (noise-free views at 15 deg have them a few mm off where the pockets are sub-millimetre).
+
     Each pixel's cost is tabulated against the lateral offset of its deck point (a turn by t moves a
-    point x behind the face sideways by about -x t), so a hypothesis costs one lookup per pixel.
-    The 1-sigma is the half-width of the yaws within 1 of the minimum cost, at least the turn that
-    moves the deck's far end by a pixel's quantisation (footprint / sqrt(12)).
+    point x behind the face sideways by about -x t, a shift by u by -u), so a hypothesis costs one
+    lookup per pixel. The 1-sigma is the half-width of the yaws within 1 of the minimum cost, at least
+    the turn that moves the deck's far end by a pixel's quantisation (footprint / sqrt(12)).
     """
     deck = _deck_pixels(frame, T_cf, valid, model, plane, s0, z0, sigma, cfg)
     if deck is None:
@@ -161,7 +173,11 @@ def _deck_yaw(
     psi_face = plane.psi
     span = min(4.0 * sigma_face, math.radians(cfg.deck_yaw_search_deg))
     step = cfg.deck_lateral_step_m
-    reach = model.length * span + 2 * step  # largest lateral offset a hypothesis gives a pixel
+    shift_max = min(3.0 * sigma_s, cfg.deck_shift_max_m)
+    # Whole table steps: a pure shift then looks up its pixels' costs exactly.
+    n_shift = min(cfg.deck_shift_steps, int(shift_max / step))
+    shifts = step * np.round(np.linspace(-shift_max, shift_max, 2 * n_shift + 1) / step)
+    reach = model.length * span + shift_max + 2 * step  # largest lateral offset a hypothesis gives a pixel
     offsets = np.arange(-reach, reach + 0.5 * step, step)
 
     def table(psi_b: float) -> tuple[np.ndarray, np.ndarray]:
@@ -184,20 +200,27 @@ def _deck_yaw(
         informative = np.ptp(cost, axis=1) > 1e-9
         return xh[informative], cost[informative]
 
-    def total(dpsi: np.ndarray, dpsi_b: float, xh: np.ndarray, cost: np.ndarray) -> np.ndarray:
-        u = -xh[:, None] * (dpsi[None] - dpsi_b)
+    def total(dpsi: np.ndarray, dpsi_b: float, xh: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cost per yaw of `dpsi` (least over the shifts) and the shift (m) that gives it."""
+        u = -xh[:, None, None] * (dpsi[None, :, None] - dpsi_b) - shifts[None, None, :]
         k = np.clip(np.rint((u + reach) / step).astype(int), 0, len(offsets) - 1)
-        return cost[np.arange(len(xh))[:, None], k].sum(axis=0) + (dpsi / sigma_face) ** 2
+        tot = np.take_along_axis(cost, k.reshape(len(xh), -1), axis=1).sum(axis=0).reshape(len(dpsi), len(shifts))
+        tot = tot + (dpsi[:, None] / sigma_face) ** 2
+        if sigma_s > 0.0:
+            tot = tot + (shifts[None, :] / sigma_s) ** 2
+        best = np.argmin(tot, axis=1)
+        return tot[np.arange(len(dpsi)), best], shifts[best]
 
     # Coarse search on the table at the face's yaw, then a fine one on a table rebuilt at that answer
     # (the rays' slopes in the pallet frame turn with the yaw).
-    dpsi = 0.0
+    dpsi, shift = 0.0, 0.0
     for half in (span, 0.15 * span):
         xh, cost = table(psi_face + dpsi)
         grid = dpsi + np.linspace(-half, half, 41)
-        tot = total(grid, dpsi, xh, cost)
-        dpsi = float(grid[int(np.argmin(tot))])
+        tot, best_shift = total(grid, dpsi, xh, cost)
+        i = int(np.argmin(tot))
+        dpsi, shift = float(grid[i]), float(best_shift[i])
     near_min = grid[tot <= tot.min() + 1.0]
     footprint_far = float(np.max(z_deck)) / float(frame.K[0, 0])
     sig = max(0.5 * float(np.ptp(near_min)), footprint_far / math.sqrt(12.0) / model.length)
-    return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), len(w), deck_h)
+    return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), len(w), deck_h, shift)
