@@ -222,5 +222,5 @@ def _deck_yaw(
         dpsi, shift = float(grid[i]), float(best_shift[i])
     near_min = grid[tot <= tot.min() + 1.0]
     footprint_far = float(np.max(z_deck)) / float(frame.K[0, 0])
-    sig = max(0.5 * float(np.ptp(near_min)), footprint_far / math.sqrt(12.0) / model.length)
+    sig = cfg.deck_sigma_scale * max(0.5 * float(np.ptp(near_min)), footprint_far / math.sqrt(12.0) / model.length)
     return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), len(w), deck_h, shift)
