@@ -565,7 +565,8 @@ def run_families(args: argparse.Namespace) -> dict:
     """Every pallet family of `args.families` on `args.frames` standpoints, ground-truth labels and the
     true calibration; per standpoint rounds of `args.frames_per_estimate` frames fused as the Pickup
     fuses them (`FramePolicy`: another round while the fused yaw 1-sigma is above
-    `args.estimate_yaw_sigma_deg`, up to `args.max_frames_per_estimate` frames)."""
+    `args.estimate_yaw_sigma_deg`, up to `args.max_frames_per_estimate` frames; no estimate where as
+    many frames refused the type as found it)."""
     from palletpilot.perception.specs import pallet_type
 
     specs = frame_specs(args.frames, args.seed, args.lateral, args.longitudinal, args.yaw_deg, tuple(args.ahead))
@@ -580,6 +581,7 @@ def run_families(args: argparse.Namespace) -> dict:
         fails: dict[str, int] = {}
         ms: list[float] = []
         taken: list[int] = []
+        type_doubts = 0  # standpoints whose frames refused the type as often as they found it: not found
         for k, base in enumerate(specs):
             spec, told = family_spec(family, base, k)
             t0 = time.perf_counter()
@@ -589,6 +591,7 @@ def run_families(args: argparse.Namespace) -> dict:
             T_true = SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"])
             cal = Calibration(SE3.from_matrix(frames[0].truth["T_forklift_camera_true"]), "true")
             found: list[PalletEstimate] = []
+            reasons: list[str] = []
             n_taken, more, first_round = 0, per, True
             while more:
                 for frame in frames:
@@ -597,6 +600,7 @@ def run_families(args: argparse.Namespace) -> dict:
                         est = estimate_pallet(frame, cal, pallet_type(told))
                     except PalletNotFound as exc:
                         fails[exc.reason] = fails.get(exc.reason, 0) + 1
+                        reasons.append(exc.reason)
                         continue
                     ms.append((time.perf_counter() - t1) * 1e3)
                     found.append(est)
@@ -612,9 +616,12 @@ def run_families(args: argparse.Namespace) -> dict:
                     frames = grab(more)
                     render_s += time.perf_counter() - t0
             taken.append(n_taken)
-            if found:
+            if found and policy.type_in_doubt(len(found), reasons):
+                type_doubts += 1
+            elif found:
                 fused.append(_errors(T_true, fuse_estimates(found).T_forklift_pallet))
         out[family] = _family_result(family, len(specs), per_frame, sigmas, fused, fails, ms, taken)
+        out[family]["type_in_doubt_standpoints"] = type_doubts
     return {
         "standpoints": len(specs),
         "frames_per_estimate": per,

@@ -33,7 +33,7 @@ from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.pallet import FramePolicy, PalletEstimate, fuse_estimates
+from palletpilot.perception.pallet import TYPE_REFUSALS, FramePolicy, PalletEstimate, fuse_estimates
 from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
@@ -131,7 +131,8 @@ class EstimatePallet(Behaviour):
 
     Takes `frames_per_estimate` frames on consecutive ticks (each with its localization fix) while the
     truck stands, estimates them off the loop and fuses the estimates; while the fused yaw is still
-    uncertain, another round of frames, up to `max_frames_per_estimate` (`_frame_policy`).
+    uncertain, another round of frames, up to `max_frames_per_estimate` (`_frame_policy`). When as many
+    frames refused the pallet type as gave an estimate, `pallet_not_found`: a type in doubt is not entered.
     """
 
     timeout_s = 20.0
@@ -142,9 +143,9 @@ class EstimatePallet(Behaviour):
         self.frames: list[tuple[FrameBundle, SE2, float]] = []
         self.estimated = 0  # frames of `self.frames` already estimated (in earlier rounds)
         self.estimates: list[PalletEstimate] = []  # of those frames, over the rounds
-        self.errors: list[str] = []
+        self.errors: list[tuple[str, str]] = []  # (reason, message) of the frames without an estimate
         self.wanted = max(1, ctx.settings.frames_per_estimate)
-        self.job: Job[tuple[list[PalletEstimate], list[str]]] | None = None
+        self.job: Job[tuple[list[PalletEstimate], list[tuple[str, str]]]] | None = None
         self.blocked_since: float | None = None  # something stood in the entry volume since (task time, s)
         self.look_at = 0.0  # task time (s) of the next look while blocked
         self.timeout_s = EstimatePallet.timeout_s + ctx.settings.blocked_wait_s
@@ -168,13 +169,13 @@ class EstimatePallet(Behaviour):
             self.estimated = len(self.frames)
             expected, pallet = _expected_pallet(ctx), ctx.pallet_type
 
-            def estimate() -> tuple[list[PalletEstimate], list[str]]:
+            def estimate() -> tuple[list[PalletEstimate], list[tuple[str, str]]]:
                 estimates, errors = [], []
                 for f, pose, _ in taken:
                     try:
                         estimates.append(perception.estimate_pallet(f, calibration, pose, expected, pallet))
                     except PerceptionError as exc:
-                        errors.append(str(exc))
+                        errors.append((str(getattr(exc, "reason", "")), str(exc)))
                 return estimates, errors
 
             self.job = ctx.jobs.submit(
@@ -192,12 +193,20 @@ class EstimatePallet(Behaviour):
         self.estimates += estimates
         self.errors += errors
         if not self.estimates:
-            why = self.errors[-1] if self.errors else "no pallet estimate"
+            why = self.errors[-1][1] if self.errors else "no pallet estimate"
             if self._blocked_in_front(ctx):
                 return None  # something stands before the pallet: look again later
             raise TaskFailed(PALLET_NOT_FOUND, why)
+        policy = _frame_policy(ctx)
+        if policy.type_in_doubt(len(self.estimates), [r for r, _ in self.errors]):
+            refusal = next(m for r, m in reversed(self.errors) if r in TYPE_REFUSALS)
+            raise TaskFailed(
+                PALLET_NOT_FOUND,
+                f"{len(self.errors)} of {len(self.frames)} frames refused the pallet type "
+                f"({ctx.pallet_type.name}), so it is not entered: {refusal}",
+            )
         fused = fuse_estimates(self.estimates)
-        more = _frame_policy(ctx).more_frames(fused, len(self.frames))
+        more = policy.more_frames(fused, len(self.frames))
         if more:
             self.wanted = len(self.frames) + more
             ctx.log(

@@ -52,7 +52,7 @@ the pocket edges' scatter and pixel footprint.
 
 Public API: `estimate_pallet`, and re-exported from `perception.pallet_estimate` (import them from
 here): `PalletEstimate`, `PalletSpread`, `PalletEstimatorConfig`, `DEFAULT_CONFIG`, `PalletNotFound`,
-`NotFoundReason`, `fuse_estimates`, `FramePolicy`, `PALLET_CLASSES`.
+`NotFoundReason`, `fuse_estimates`, `FramePolicy`, `TYPE_REFUSALS`, `PALLET_CLASSES`.
 
 This module runs the steps; the pieces live in `perception.pallet_estimate` (tuning, result, failure,
 fusion), `perception.pallet_face` (pixels as rays, the face plane, its fits and the spread: steps 1
@@ -78,6 +78,7 @@ from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
     DEFAULT_CONFIG,
     PALLET_CLASSES,
+    TYPE_REFUSALS,
     FramePolicy,
     NotFoundReason,
     PalletEstimate,
@@ -118,6 +119,7 @@ from palletpilot.perception.specs import PalletType
 __all__ = [
     "DEFAULT_CONFIG",
     "PALLET_CLASSES",
+    "TYPE_REFUSALS",
     "FramePolicy",
     "NotFoundReason",
     "PalletEstimate",

@@ -11,7 +11,7 @@ Public API (re-exported by `perception.pallet`; import it from there):
 - `PalletNotFound`: a `PerceptionError` whose `reason` is one of `NotFoundReason`.
 - `fuse_estimates`: one estimate from several frames of one standpoint (inverse-variance weights).
 - `FramePolicy`: how many frames a standpoint takes before its fused estimate is judged (more where
-  the fused yaw is still uncertain).
+  the fused yaw is still uncertain), and when its frames doubt the pallet type (`TYPE_REFUSALS`).
 - `PALLET_CLASSES`: the label ids of pallet pixels.
 """
 
@@ -37,6 +37,8 @@ NotFoundReason = Literal[
     "too_few_points", "no_entry_face", "pockets_inconsistent", "not_where_expected", "type_mismatch"
 ]
 """Why no pallet was found; `type_mismatch`: a pallet face wider than the pallet type's (another type)."""
+TYPE_REFUSALS = frozenset({"type_mismatch", "pockets_inconsistent"})
+"""The reasons that say the face is not of the pallet type (rather than not seen well enough)."""
 
 
 class PalletNotFound(PerceptionError):  # noqa: N818 (the name the architecture gives it)
@@ -265,6 +267,15 @@ class FramePolicy:
     per_round: int = 3
     max_frames: int = 9
     yaw_sigma_rad: float = math.radians(0.25)
+
+    def type_in_doubt(self, found: int, reasons: list[str]) -> bool:
+        """Whether a standpoint's frames doubt the pallet type: as many or more of them refused it
+        (`TYPE_REFUSALS`) as gave an estimate. Another type at 3.5-4 m (a 1200 x 800 plastic pallet told
+        EUR: pockets 27.5 mm narrower, a pixel is 6-7 mm there) now and then passes in one frame of three,
+        while a sound pallet of the type is refused in about one frame in thirty; the Pickup never enters
+        a pallet whose type its own frames doubt."""
+        refused = sum(r in TYPE_REFUSALS for r in reasons)
+        return refused > 0 and refused >= found
 
     def more_frames(self, fused: PalletEstimate | None, frames_taken: int) -> int:
         """Frames to take before judging (0: judge `fused` now): another round while the fused yaw is

@@ -107,3 +107,50 @@ def test_the_pickup_takes_rounds_of_frames_while_the_yaw_is_uncertain(tmp_path: 
     assert [(e["frames"], e["more"]) for e in more[:2]] == [(3, 3), (6, 1)]
     assert all(e["yaw_sigma_deg"] > sigma_deg for e in more)
     assert any(e["event"] == "pallet_estimate" for e in events)
+
+
+def test_the_type_is_in_doubt_when_as_many_frames_refuse_it_as_find_it():
+    policy = FramePolicy()
+    assert policy.type_in_doubt(1, ["pockets_inconsistent", "type_mismatch"])
+    assert policy.type_in_doubt(1, ["pockets_inconsistent"])
+    assert not policy.type_in_doubt(2, ["pockets_inconsistent"])
+    assert not policy.type_in_doubt(1, ["too_few_points", "not_where_expected"])  # not seen well: no doubt
+    assert not policy.type_in_doubt(3, [])
+
+
+def _pickup_with_refusals(tmp_path: Path, monkeypatch, refuse_every: int):
+    """A pickup of a EUR pallet whose frames are refused for the type (`pockets_inconsistent`) on every
+    `refuse_every`-th call of the estimator, from the first on."""
+    from palletpilot.executor.ports import LocalPerception
+    from palletpilot.perception.pallet import PalletNotFound
+
+    calls = {"n": 0}
+    real = LocalPerception.estimate_pallet
+
+    def estimate(self, *args, **kwargs):
+        calls["n"] += 1
+        if (calls["n"] - 1) % refuse_every != refuse_every - 1:
+            raise PalletNotFound(
+                "pockets_inconsistent", "the left pocket is 214 mm wide, the EUR/EPAL type's are 227.5 mm"
+            )
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(LocalPerception, "estimate_pallet", estimate)
+    sc = Scenario.model_validate(
+        {"map": "warehouse.yaml", "start": "floor_b2_pre", "seed": 3, "pallets": [{"node": "floor_b2", "loaded": True}]}
+    )
+    sc.folder = MISSIONS
+    mission = tmp_path / "mission.yaml"
+    tasks = [{"type": "pickup", "node": "floor_b2"}]
+    mission.write_text(yaml.safe_dump({"name": "t", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks}))
+    return run_simulated(mission, scenario=sc, report_dir=tmp_path / "report", labels="truth")
+
+
+def test_a_pallet_whose_frames_doubt_its_type_is_not_entered(tmp_path: Path, monkeypatch):
+    """Two of every three frames refuse the type: the standpoint's one estimate is not acted on."""
+    r = _pickup_with_refusals(tmp_path, monkeypatch, refuse_every=3)
+    result = r.runner.results[0]
+    assert not r.success and result.reason == "pallet_not_found", result.message
+    assert "2 of 3 frames refused the pallet type" in (result.message or "")
+    assert not any(p.lifted for p in r.sim.pallets) and not r.sim.collisions
+    assert abs(r.sim.forklift.state.v) < 1e-9  # stopped
