@@ -50,7 +50,7 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     from palletpilot.perception.calibration_io import load_calibration
     from palletpilot.perception.depth_tare import correct_depth, load_tare
     from palletpilot.perception.frames import load_bundle
-    from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
+    from palletpilot.perception.pallet import PalletNotFound, estimate_pallet, estimator_config
 
     problems: list[str] = []
     mast_range_m: tuple[float, float] | None = None
@@ -69,7 +69,7 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
 
     frame = _with_labels(correct_depth(frame, tare), args.frame)
     try:
-        estimate = estimate_pallet(frame, calibration, pallet)
+        estimate = estimate_pallet(frame, calibration, pallet, config=estimator_config(depth_tared=tare is not None))
     except PalletNotFound as exc:  # name the frame in the one-line message
         raise PalletNotFound(exc.reason, exc.detail, where=args.frame) from None
     doc = estimate.to_json()

@@ -20,7 +20,7 @@ from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.clearance import Volume, VolumeCheck, check_volume
 from palletpilot.perception.depth_tare import DepthTare, correct_depth
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.pallet import PalletEstimate, estimate_pallet
+from palletpilot.perception.pallet import PalletEstimate, estimate_pallet, estimator_config
 from palletpilot.perception.segmentation import SegmentationService
 from palletpilot.perception.specs import ForkGeometry, PalletType
 
@@ -149,6 +149,7 @@ class LocalPerception:
         self.calibrator = Calibrator(forks, method)
         self.segmenter = segmenter
         self.depth_tare = depth_tare
+        self.pallet_config = estimator_config(depth_tared=depth_tare is not None)  # the spread knows the tare
 
     def _labelled(self, frame: FrameBundle) -> FrameBundle:
         frame = correct_depth(frame, self.depth_tare)
@@ -180,6 +181,7 @@ class LocalPerception:
             pallet or self.pallet,
             T_world_forklift=T_world_forklift,
             expected=expected,
+            config=self.pallet_config,
         )
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:

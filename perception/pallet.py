@@ -78,6 +78,7 @@ from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
     DEFAULT_CONFIG,
     PALLET_CLASSES,
+    TARED_DEPTH_SCALE_SIGMA,
     TYPE_REFUSALS,
     FramePolicy,
     NotFoundReason,
@@ -85,6 +86,7 @@ from palletpilot.perception.pallet_estimate import (
     PalletEstimatorConfig,
     PalletNotFound,
     PalletSpread,
+    estimator_config,
     fuse_estimates,
 )
 from palletpilot.perception.pallet_face import (
@@ -119,6 +121,7 @@ from palletpilot.perception.specs import PalletType
 __all__ = [
     "DEFAULT_CONFIG",
     "PALLET_CLASSES",
+    "TARED_DEPTH_SCALE_SIGMA",
     "TYPE_REFUSALS",
     "FramePolicy",
     "NotFoundReason",
@@ -127,6 +130,7 @@ __all__ = [
     "PalletNotFound",
     "PalletSpread",
     "estimate_pallet",
+    "estimator_config",
     "fuse_estimates",
 ]
 
@@ -233,10 +237,13 @@ def estimate_pallet(
     sx, sy, syaw = _spread(plane, cam, s0, sigma_s, cov3)
     if deck is not None:
         syaw = deck.sigma_psi
+    # The camera's depth scale error s moves every point along its ray by s times its range: the same
+    # for every frame of this camera.
+    cx, cy = (cfg.depth_scale_sigma * abs(float(origin[i] - cam[i])) for i in (0, 1))
     res = all_rays.w - plane.predict(all_rays.d)
     estimate = PalletEstimate(
         T_forklift_pallet=T_fp,
-        spread=PalletSpread(sx, sy, syaw),
+        spread=PalletSpread(math.hypot(sx, cx), math.hypot(sy, cy), syaw, cx, cy),
         n_points=len(rows),
         n_face_points=n_face,
         pocket_widths_m=(float(left_w), float(right_w)),

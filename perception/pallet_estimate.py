@@ -5,7 +5,8 @@ y left, z up), `pallet` (origin at the centre of the entry face on the pallet's 
 pallet, y left, z up), `world`. SI units (angles in rad; `to_json` in degrees).
 
 Public API (re-exported by `perception.pallet`; import it from there):
-- `PalletEstimatorConfig` (the tuning of `estimate_pallet`), `DEFAULT_CONFIG`.
+- `PalletEstimatorConfig` (the tuning of `estimate_pallet`), `DEFAULT_CONFIG`, `estimator_config` (for a
+  camera with or without a depth tare), `TARED_DEPTH_SCALE_SIGMA`.
 - `PalletEstimate` (`T_forklift_pallet`, `T_world_pallet`, spread, pocket measurements, `to_json`),
   `PalletSpread` (1-sigma x, y and yaw).
 - `PalletNotFound`: a `PerceptionError` whose `reason` is one of `NotFoundReason`.
@@ -17,6 +18,7 @@ Public API (re-exported by `perception.pallet`; import it from there):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -104,6 +106,11 @@ class PalletEstimatorConfig:
     thin wall pixels at 2.5-4 m made the yaw slightly worse (p95 0.64 vs 0.51 deg on 60 frames)."""
     min_wall_pixels: int = 30
     """Fewest side-wall pixels for the joint face-and-walls fit."""
+    depth_scale_sigma: float = 0.0017
+    """1-sigma of the camera's depth scale error (a fraction; measured z = true z (1 + s), the same for
+    every frame of one camera): it moves the pallet along the camera's ray by s times its distance, 6 mm
+    at 3.5 m. 0.0017 is +-0.3 % uniform, the simulator's D435; a camera with a depth tare
+    (`perception.depth_tare`) is known to about 0.04 % (`TARED_DEPTH_SCALE_SIGMA`)."""
     deck_yaw: bool = True
     """Refine the yaw with the top deck's board edges where the camera sees the deck (see `_deck_yaw`)."""
     deck_min_pixels: int = 150
@@ -134,17 +141,42 @@ class PalletEstimatorConfig:
 DEFAULT_CONFIG = PalletEstimatorConfig()
 
 
+def estimator_config(depth_tared: bool) -> PalletEstimatorConfig:
+    """The default tuning for a camera with (`TARED_DEPTH_SCALE_SIGMA`) or without a depth tare."""
+    return (
+        dataclasses.replace(DEFAULT_CONFIG, depth_scale_sigma=TARED_DEPTH_SCALE_SIGMA)
+        if depth_tared
+        else DEFAULT_CONFIG
+    )
+
+
+TARED_DEPTH_SCALE_SIGMA = 0.0004
+"""`depth_scale_sigma` after a depth tare: its residual (bench calibration: p95 0.06 %)."""
+
+
 @dataclass(frozen=True)
 class PalletSpread:
-    """1-sigma uncertainty of a pallet estimate: x, y (m, forklift frame) and yaw (rad)."""
+    """1-sigma uncertainty of a pallet estimate: x, y (m, forklift frame) and yaw (rad).
+
+    `x_common_m`, `y_common_m`: the part of `x_m`, `y_m` that every frame of the same camera shares (its
+    depth scale error moves the whole point cloud along the rays), which fusing frames does not reduce.
+    """
 
     x_m: float
     y_m: float
     yaw_rad: float
+    x_common_m: float = 0.0
+    y_common_m: float = 0.0
 
     def to_json(self) -> dict[str, float]:
-        """`x_m`, `y_m` (m) and `yaw_deg`."""
-        return {"x_m": round(self.x_m, 6), "y_m": round(self.y_m, 6), "yaw_deg": round(math.degrees(self.yaw_rad), 5)}
+        """`x_m`, `y_m` (m) and `yaw_deg`, and the common parts `x_common_m`, `y_common_m` (m)."""
+        return {
+            "x_m": round(self.x_m, 6),
+            "y_m": round(self.y_m, 6),
+            "yaw_deg": round(math.degrees(self.yaw_rad), 5),
+            "x_common_m": round(self.x_common_m, 6),
+            "y_common_m": round(self.y_common_m, 6),
+        }
 
 
 @dataclass(frozen=True)
@@ -205,7 +237,8 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     x, y (forklift frame, and the world frame where every estimate has `T_world_pallet`) and yaw are
     inverse-variance weighted means (the spreads come from each frame's fit, so a frame that sees
     less counts less); the height is the plain mean. The spread of the result is that of the
-    weighted mean, 1 / sqrt(sum of 1 / sigma^2). All estimates must be of the same pallet from the
+    weighted mean, 1 / sqrt(sum of 1 / sigma^2), with the part every frame shares (`x_common_m`,
+    `y_common_m`: the camera's depth scale) added back, undiminished. All estimates must be of the same pallet from the
     same standpoint (the forklift frame does not move between them).
     """
     if not estimates:
@@ -213,9 +246,14 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     if len(estimates) == 1:
         return estimates[0]
 
-    # Precisions (1 / sigma^2) per frame of x, y and yaw; normalised, they are the weights.
+    # Precisions (1 / sigma^2) per frame of x, y (their own parts, without what all frames share) and yaw;
+    # normalised, they are the weights.
+    def own(e: PalletEstimate, k: str) -> float:
+        total, common = getattr(e.spread, k), getattr(e.spread, k.replace("_m", "_common_m"), 0.0)
+        return math.sqrt(max(total * total - common * common, 0.0))
+
     px, py, pyaw = (
-        1.0 / np.maximum(np.array([getattr(e.spread, k) for e in estimates]), 1e-9) ** 2
+        1.0 / np.maximum(np.array([own(e, k) if k != "yaw_rad" else e.spread.yaw_rad for e in estimates]), 1e-9) ** 2
         for k in ("x_m", "y_m", "yaw_rad")
     )
     wx, wy, wyaw = px / px.sum(), py / py.sum(), pyaw / pyaw.sum()
@@ -237,7 +275,10 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
         equal = np.full(len(estimates), 1.0 / len(estimates))
         T_wp = fuse([T @ T_fp for T in T_wf], equal, equal, equal)
 
-    spread = PalletSpread(*(float(1.0 / math.sqrt(p.sum())) for p in (px, py, pyaw)))
+    fused = [float(1.0 / math.sqrt(p.sum())) for p in (px, py, pyaw)]
+    cx = float(np.mean([e.spread.x_common_m for e in estimates]))
+    cy = float(np.mean([e.spread.y_common_m for e in estimates]))
+    spread = PalletSpread(math.hypot(fused[0], cx), math.hypot(fused[1], cy), fused[2], cx, cy)
     first = estimates[0]
     return PalletEstimate(
         T_forklift_pallet=T_fp,

@@ -373,7 +373,13 @@ def estimate_to_json(estimate: PalletEstimate) -> dict[str, Any]:
         "estimate": {
             "T_forklift_pallet": se3_to_json(estimate.T_forklift_pallet),
             "T_world_pallet": None if estimate.T_world_pallet is None else se3_to_json(estimate.T_world_pallet),
-            "spread": {"x_m": estimate.spread.x_m, "y_m": estimate.spread.y_m, "yaw_rad": estimate.spread.yaw_rad},
+            "spread": {
+                "x_m": estimate.spread.x_m,
+                "y_m": estimate.spread.y_m,
+                "yaw_rad": estimate.spread.yaw_rad,
+                "x_common_m": estimate.spread.x_common_m,
+                "y_common_m": estimate.spread.y_common_m,
+            },
             "n_points": estimate.n_points,
             "n_face_points": estimate.n_face_points,
             "pocket_widths_m": list(estimate.pocket_widths_m),
@@ -397,7 +403,8 @@ def estimate_from_json(doc: Mapping[str, Any], where: str) -> PalletEstimate:
     return PalletEstimate(
         T_forklift_pallet=se3_from_json(_field(e, "T_forklift_pallet", where), f"{where}: T_forklift_pallet"),
         spread=PalletSpread(
-            *(_number(_field(spread, k, where), f"{where}: spread.{k}") for k in ("x_m", "y_m", "yaw_rad"))
+            *(_number(_field(spread, k, where), f"{where}: spread.{k}") for k in ("x_m", "y_m", "yaw_rad")),
+            *(_number(spread.get(k, 0.0), f"{where}: spread.{k}") for k in ("x_common_m", "y_common_m")),
         ),
         n_points=int(_number(_field(e, "n_points", where), f"{where}: n_points")),
         n_face_points=int(_number(_field(e, "n_face_points", where), f"{where}: n_face_points")),

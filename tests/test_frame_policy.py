@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+import pytest
 import yaml
 
 from palletpilot.bench import pallet as bench_pallet
@@ -15,7 +16,7 @@ from palletpilot.executor.behaviour import Settings
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration
-from palletpilot.perception.pallet import FramePolicy, PalletSpread, estimate_pallet, fuse_estimates
+from palletpilot.perception.pallet import FramePolicy, PalletSpread, estimate_pallet, estimator_config, fuse_estimates
 from palletpilot.perception.specs import pallet_type
 from palletpilot.sim.scenario import Scenario
 
@@ -154,3 +155,23 @@ def test_a_pallet_whose_frames_doubt_its_type_is_not_entered(tmp_path: Path, mon
     assert "2 of 3 frames refused the pallet type" in (result.message or "")
     assert not any(p.lifted for p in r.sim.pallets) and not r.sim.collisions
     assert abs(r.sim.forklift.state.v) < 1e-9  # stopped
+
+
+def test_the_depth_scale_part_of_the_spread_is_not_fused_away():
+    """A camera's depth scale error is the same in every frame: fusing frames shrinks only their own parts,
+    and a frame's common part is the scale sigma times the pallet's range along x."""
+    spec = FrameSpec("floor_b2", loaded=True, dx=0.0, dy=0.05, dyaw_deg=3.0, ahead=2.5, seed=2)
+    frames = standpoint(spec)(3)
+    cal = Calibration(SE3.from_matrix(frames[0].truth["T_forklift_camera_true"]), "true")
+    ests = [estimate_pallet(f, cal) for f in frames]
+    range_x = ests[0].T_forklift_pallet.t[0] - cal.T_forklift_camera_at(frames[0].fork_height).t[0]
+    assert ests[0].spread.x_common_m == pytest.approx(0.0017 * range_x, rel=1e-6)
+    fused = fuse_estimates(ests)
+    assert fused.spread.x_common_m == pytest.approx(ests[0].spread.x_common_m, rel=1e-3)
+    assert fused.spread.x_m >= fused.spread.x_common_m
+    own = [math.sqrt(e.spread.x_m**2 - e.spread.x_common_m**2) for e in ests]
+    assert fused.spread.x_m == pytest.approx(
+        math.hypot(1 / math.sqrt(sum(1 / o**2 for o in own)), fused.spread.x_common_m)
+    )
+    tared = estimate_pallet(frames[0], cal, config=estimator_config(depth_tared=True))
+    assert tared.spread.x_common_m == pytest.approx(0.0004 * range_x, rel=1e-6)

@@ -45,7 +45,8 @@ def errors(frame: FrameBundle, T_forklift_pallet: SE3) -> tuple[float, float, fl
 )
 def test_noise_free_frames_are_sub_millimetre(spec):
     frame, _ = render(spec, noise=False)
-    est = estimate_pallet(frame, true_calibration(frame))
+    exact_depth = dataclasses.replace(pallet_module.DEFAULT_CONFIG, depth_scale_sigma=0.0)  # no depth scale error
+    est = estimate_pallet(frame, true_calibration(frame), config=exact_depth)
     lateral, longitudinal, height, yaw = errors(frame, est.T_forklift_pallet)
     assert abs(lateral) < 1e-3 and abs(longitudinal) < 1e-3
     assert abs(math.degrees(yaw)) < 0.05
