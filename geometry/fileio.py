@@ -109,6 +109,8 @@ def read_yaml(path: str | Path, error: type[PalletpilotError] = PalletpilotError
         try:
             data = yaml.load(text, Loader=_SafeLoader)  # a safe loader: never builds Python objects
         except yaml.YAMLError as exc:
+            if "maximum nesting depth" in str(exc):  # the limit libyaml itself has in recent PyYAML wheels
+                raise error(f"{path}: nested deeper than {MAX_DEPTH} levels") from None
             raise error(f"{path}: not valid YAML: {_yaml_line(exc)}") from None
         except RecursionError:
             raise error(f"{path}: not valid YAML: nested too deeply") from None
