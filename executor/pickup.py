@@ -199,11 +199,11 @@ class EstimatePallet(Behaviour):
             raise TaskFailed(PALLET_NOT_FOUND, why)
         policy = _frame_policy(ctx)
         if policy.type_in_doubt(len(self.estimates), [r for r, _ in self.errors]):
-            refusal = next(m for r, m in reversed(self.errors) if r in TYPE_REFUSALS)
+            refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
             raise TaskFailed(
                 PALLET_NOT_FOUND,
-                f"{len(self.errors)} of {len(self.frames)} frames refused the pallet type "
-                f"({ctx.pallet_type.name}), so it is not entered: {refusal}",
+                f"{len(refusals)} of {len(self.frames)} frames refused the pallet type "
+                f"({ctx.pallet_type.name}), so it is not entered: {refusals[-1]}",
             )
         fused = fuse_estimates(self.estimates)
         more = policy.more_frames(fused, len(self.frames))
