@@ -609,14 +609,15 @@ def run_families(args: argparse.Namespace) -> dict:
                         sp = est.spread
                         sigmas.append((sp.y_m, sp.x_m, sp.yaw_rad))
                 n_taken += len(frames)
-                more = policy.more_frames(fuse_estimates(found) if found else None, n_taken)
+                doubt = bool(found) and policy.type_in_doubt(len(found), reasons)  # judged each round, as the Pickup
+                more = 0 if doubt else policy.more_frames(fuse_estimates(found) if found else None, n_taken)
                 first_round = False
                 if more:
                     t0 = time.perf_counter()
                     frames = grab(more)
                     render_s += time.perf_counter() - t0
             taken.append(n_taken)
-            if found and policy.type_in_doubt(len(found), reasons):
+            if doubt:
                 type_doubts += 1
             elif found:
                 fused.append(_errors(T_true, fuse_estimates(found).T_forklift_pallet))
