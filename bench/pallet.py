@@ -609,18 +609,17 @@ def run_families(args: argparse.Namespace) -> dict:
                         sp = est.spread
                         sigmas.append((sp.y_m, sp.x_m, sp.yaw_rad))
                 n_taken += len(frames)
-                doubt = bool(found) and policy.type_in_doubt(len(found), reasons)  # judged each round, as the Pickup
-                more = 0 if doubt else policy.more_frames(fuse_estimates(found) if found else None, n_taken)
+                verdict = policy.after_round(found, reasons, n_taken)  # as the Pickup decides
+                more = verdict.more
                 first_round = False
                 if more:
                     t0 = time.perf_counter()
                     frames = grab(more)
                     render_s += time.perf_counter() - t0
             taken.append(n_taken)
-            if doubt:
-                type_doubts += 1
-            elif found:
-                fused.append(_errors(T_true, fuse_estimates(found).T_forklift_pallet))
+            type_doubts += verdict.type_in_doubt
+            if verdict.fused is not None:
+                fused.append(_errors(T_true, verdict.fused.T_forklift_pallet))
         out[family] = _family_result(family, len(specs), per_frame, sigmas, fused, fails, ms, taken)
         out[family]["type_in_doubt_standpoints"] = type_doubts
     return {

@@ -33,7 +33,7 @@ from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.pallet import TYPE_REFUSALS, FramePolicy, PalletEstimate, fuse_estimates
+from palletpilot.perception.pallet import TYPE_REFUSALS, FramePolicy, PalletEstimate
 from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
@@ -141,8 +141,7 @@ class EstimatePallet(Behaviour):
         ctx.vehicle.stop()
         ctx.attempts += 1
         self.frames: list[tuple[FrameBundle, SE2, float]] = []
-        self.estimated = 0  # frames of `self.frames` already estimated (in earlier rounds)
-        self.estimates: list[PalletEstimate] = []  # of those frames, over the rounds
+        self.estimates: list[PalletEstimate] = []  # of the frames estimated so far, over the rounds
         self.errors: list[tuple[str, str]] = []  # (reason, message) of the frames without an estimate
         self.wanted = max(1, ctx.settings.frames_per_estimate)
         self.job: Job[tuple[list[PalletEstimate], list[tuple[str, str]]]] | None = None
@@ -165,8 +164,7 @@ class EstimatePallet(Behaviour):
                 self.frames.append((frame, ctx.vehicle.localization(), _frame_time(ctx, frame)))
             if len(self.frames) < self.wanted:
                 return None
-            taken = self.frames[self.estimated :]
-            self.estimated = len(self.frames)
+            taken = self.frames[len(self.estimates) + len(self.errors) :]  # each estimated frame gave one of them
             expected, pallet = _expected_pallet(ctx), ctx.pallet_type
 
             def estimate() -> tuple[list[PalletEstimate], list[tuple[str, str]]]:
@@ -197,22 +195,22 @@ class EstimatePallet(Behaviour):
             if self._blocked_in_front(ctx):
                 return None  # something stands before the pallet: look again later
             raise TaskFailed(PALLET_NOT_FOUND, why)
-        policy = _frame_policy(ctx)
-        if policy.type_in_doubt(len(self.estimates), [r for r, _ in self.errors]):
+        verdict = _frame_policy(ctx).after_round(self.estimates, [r for r, _ in self.errors], len(self.frames))
+        if verdict.type_in_doubt:
             refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
             raise TaskFailed(
                 PALLET_NOT_FOUND,
                 f"{len(refusals)} of {len(self.frames)} frames refused the pallet type "
                 f"({ctx.pallet_type.name}), so it is not entered: {refusals[-1]}",
             )
-        fused = fuse_estimates(self.estimates)
-        more = policy.more_frames(fused, len(self.frames))
-        if more:
-            self.wanted = len(self.frames) + more
+        fused = verdict.fused
+        assert fused is not None
+        if verdict.more:
+            self.wanted = len(self.frames) + verdict.more
             ctx.log(
                 "estimate_more_frames",
                 frames=len(self.frames),
-                more=more,
+                more=verdict.more,
                 yaw_sigma_deg=round(math.degrees(fused.spread.yaw_rad), 3),
                 limit_deg=ctx.settings.estimate_yaw_sigma_deg,
             )
@@ -222,7 +220,6 @@ class EstimatePallet(Behaviour):
     def _restart(self, ctx: Context) -> None:
         """Forget the frames and estimates taken so far (the truck moved): start the first round again."""
         self.frames.clear()
-        self.estimated = 0
         self.estimates, self.errors = [], []
         self.wanted = max(1, ctx.settings.frames_per_estimate)
 

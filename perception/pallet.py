@@ -52,7 +52,8 @@ the pocket edges' scatter and pixel footprint.
 
 Public API: `estimate_pallet`, and re-exported from `perception.pallet_estimate` (import them from
 here): `PalletEstimate`, `PalletSpread`, `PalletEstimatorConfig`, `DEFAULT_CONFIG`, `PalletNotFound`,
-`NotFoundReason`, `fuse_estimates`, `FramePolicy`, `TYPE_REFUSALS`, `PALLET_CLASSES`.
+`NotFoundReason`, `fuse_estimates`, `FramePolicy`, `RoundVerdict`, `TYPE_REFUSALS`, `estimator_config`,
+`TARED_DEPTH_SCALE_SIGMA`, `PALLET_CLASSES`.
 
 This module runs the steps; the pieces live in `perception.pallet_estimate` (tuning, result, failure,
 fusion), `perception.pallet_face` (pixels as rays, the face plane, its fits and the spread: steps 1
@@ -86,6 +87,7 @@ from palletpilot.perception.pallet_estimate import (
     PalletEstimatorConfig,
     PalletNotFound,
     PalletSpread,
+    RoundVerdict,
     estimator_config,
     fuse_estimates,
 )
@@ -129,6 +131,7 @@ __all__ = [
     "PalletEstimatorConfig",
     "PalletNotFound",
     "PalletSpread",
+    "RoundVerdict",
     "estimate_pallet",
     "estimator_config",
     "fuse_estimates",

@@ -12,7 +12,8 @@ Public API (re-exported by `perception.pallet`; import it from there):
 - `PalletNotFound`: a `PerceptionError` whose `reason` is one of `NotFoundReason`.
 - `fuse_estimates`: one estimate from several frames of one standpoint (inverse-variance weights).
 - `FramePolicy`: how many frames a standpoint takes before its fused estimate is judged (more where
-  the fused yaw is still uncertain), and when its frames doubt the pallet type (`TYPE_REFUSALS`).
+  the fused yaw is still uncertain), and when its frames doubt the pallet type (`TYPE_REFUSALS`);
+  `RoundVerdict`, its decision after each round.
 - `PALLET_CLASSES`: the label ids of pallet pixels.
 """
 
@@ -21,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -141,6 +142,10 @@ class PalletEstimatorConfig:
 DEFAULT_CONFIG = PalletEstimatorConfig()
 
 
+TARED_DEPTH_SCALE_SIGMA = 0.0004
+"""`depth_scale_sigma` after a depth tare: its residual (bench calibration: p95 0.06 %)."""
+
+
 def estimator_config(depth_tared: bool) -> PalletEstimatorConfig:
     """The default tuning for a camera with (`TARED_DEPTH_SCALE_SIGMA`) or without a depth tare."""
     return (
@@ -148,10 +153,6 @@ def estimator_config(depth_tared: bool) -> PalletEstimatorConfig:
         if depth_tared
         else DEFAULT_CONFIG
     )
-
-
-TARED_DEPTH_SCALE_SIGMA = 0.0004
-"""`depth_scale_sigma` after a depth tare: its residual (bench calibration: p95 0.06 %)."""
 
 
 @dataclass(frozen=True)
@@ -167,6 +168,16 @@ class PalletSpread:
     yaw_rad: float
     x_common_m: float = 0.0
     y_common_m: float = 0.0
+
+    @property
+    def x_own_m(self) -> float:
+        """The part of `x_m` that is this frame's own (without `x_common_m`)."""
+        return math.sqrt(max(self.x_m**2 - self.x_common_m**2, 0.0))
+
+    @property
+    def y_own_m(self) -> float:
+        """The part of `y_m` that is this frame's own (without `y_common_m`)."""
+        return math.sqrt(max(self.y_m**2 - self.y_common_m**2, 0.0))
 
     def to_json(self) -> dict[str, float]:
         """`x_m`, `y_m` (m) and `yaw_deg`, and the common parts `x_common_m`, `y_common_m` (m)."""
@@ -248,13 +259,9 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
 
     # Precisions (1 / sigma^2) per frame of x, y (their own parts, without what all frames share) and yaw;
     # normalised, they are the weights.
-    def own(e: PalletEstimate, k: str) -> float:
-        total, common = getattr(e.spread, k), getattr(e.spread, k.replace("_m", "_common_m"), 0.0)
-        return math.sqrt(max(total * total - common * common, 0.0))
-
     px, py, pyaw = (
-        1.0 / np.maximum(np.array([own(e, k) if k != "yaw_rad" else e.spread.yaw_rad for e in estimates]), 1e-9) ** 2
-        for k in ("x_m", "y_m", "yaw_rad")
+        1.0 / np.maximum(np.array([getattr(e.spread, k) for e in estimates]), 1e-9) ** 2
+        for k in ("x_own_m", "y_own_m", "yaw_rad")
     )
     wx, wy, wyaw = px / px.sum(), py / py.sum(), pyaw / pyaw.sum()
 
@@ -294,6 +301,14 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     )
 
 
+class RoundVerdict(NamedTuple):
+    """`FramePolicy.after_round`: the type in doubt, the fused estimate so far, frames still to take."""
+
+    type_in_doubt: bool
+    fused: PalletEstimate | None
+    more: int
+
+
 @dataclass(frozen=True)
 class FramePolicy:
     """How many frames of one standpoint go into the estimate that the Pickup judges.
@@ -317,6 +332,15 @@ class FramePolicy:
         a pallet whose type its own frames doubt."""
         refused = sum(r in TYPE_REFUSALS for r in reasons)
         return refused > 0 and refused >= found
+
+    def after_round(self, found: list[PalletEstimate], reasons: list[str], frames_taken: int) -> RoundVerdict:
+        """What a standpoint does after a round, the Pickup and `bench pallet` alike: the type in doubt
+        (`type_in_doubt`) ends it first; else the fused estimate (None without one) and how many more
+        frames to take before judging it (`more_frames`)."""
+        if found and self.type_in_doubt(len(found), reasons):
+            return RoundVerdict(True, None, 0)
+        fused = fuse_estimates(found) if found else None
+        return RoundVerdict(False, fused, self.more_frames(fused, frames_taken))
 
     def more_frames(self, fused: PalletEstimate | None, frames_taken: int) -> int:
         """Frames to take before judging (0: judge `fused` now): another round while the fused yaw is
