@@ -1,10 +1,10 @@
 """`palletpilot segment ...`: segmentation datasets, evaluation and timing (wired in by `executor.cli`).
 
-- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup] [--randomise]`:
+- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup] [--randomise [novel]]`:
   render simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`; `--randomise`:
-  domain randomisation of colours, pallet types and light);
+  domain randomisation of colours, pallet types and light; `--randomise novel`: looks it never draws, for testing);
 - `palletpilot segment train DATA_DIR [DATA_DIR ...] [--init M.onnx] --out OUT.onnx [--steps N | --minutes M]
-  [--seed S] [--threads T] [--lr LR] [--heldout DIR]`: fine-tune a model (default: the shipped one) on
+  [--seed S] [--threads T] [--lr LR] [--thaw-norms] [--heldout DIR]`: fine-tune a model (default: the shipped one) on
   frame bundles and / or folders of labelled PNG frames (`perception.segmentation_data`), with
   `perception.train_segmentation.train`; needs torch and onnx (`pip install '.[train]'`);
 - `palletpilot segment eval DATA_DIR [--model M.onnx] [--frames N] [--json]`: per-class IoU of the
@@ -38,7 +38,13 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
     from palletpilot.sim.dataset import generate_dataset
 
     paths = generate_dataset(
-        args.out_dir, args.frames, seed=args.seed, start=args.start, mounts=args.mounts, randomise=args.randomise
+        args.out_dir,
+        args.frames,
+        seed=args.seed,
+        start=args.start,
+        mounts=args.mounts,
+        randomise=args.randomise is not None,
+        novel=args.randomise == "novel",
     )
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
     return EXIT_OK
@@ -69,6 +75,7 @@ def cmd_segment_train(args: argparse.Namespace) -> int:
         lr=args.lr if args.lr is not None else FINETUNE_LR,
         threads=args.threads,
         init=args.init,
+        thaw_norms=args.thaw_norms,
         log=not args.quiet,
     )
     print(f"wrote {args.out}: {facts['steps']} steps on {facts['frames']} frames in {facts['train_minutes']} min")
@@ -131,8 +138,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     ds.add_argument(
         "--randomise",
-        action="store_true",
-        help="domain randomisation: colours of floor, racks, pallets and loads, pallet types, light and exposure",
+        nargs="?",
+        const="standard",
+        default=None,
+        choices=("standard", "novel"),
+        help="domain randomisation: colours of floor, racks, pallets and loads, pallet types, light and exposure; "
+        "'novel': looks the standard randomisation never draws (to test a model on unseen looks)",
     )
     ds.set_defaults(func=cmd_segment_dataset)
 
@@ -148,6 +159,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     tr.add_argument("--seed", type=seed, default=0)
     tr.add_argument("--threads", type=count(1), default=1, help="torch CPU threads")
     tr.add_argument("--lr", type=number(1e-6, 1.0), default=None, help="peak learning rate (default 1e-3)")
+    tr.add_argument(
+        "--thaw-norms",
+        action="store_true",
+        help="re-estimate the batch norms on the data and train them (thousands of frames of new looks; "
+        "default: frozen, right for a few hundred own frames)",
+    )
     tr.add_argument("--heldout", type=Path, default=None, help="evaluate the new model on these bundles")
     tr.add_argument("--quiet", action="store_true", help="no progress lines")
     tr.set_defaults(func=cmd_segment_train)

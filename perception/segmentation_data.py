@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -164,6 +165,57 @@ def freeze_batchnorm(model: Any) -> None:
     for module in model.modules():
         if isinstance(module, nn.BatchNorm2d):
             module.eval()
+
+
+def thaw_batchnorm(model: Any, batches: Iterable[Any]) -> None:
+    """Make the identity batch norms of an imported model trainable without changing what it computes.
+
+    After `import_onnx_weights` every batch norm has identity statistics, so its running statistics say
+    nothing about the data and training it with batch statistics would rescale every channel at once.
+    This measures, in eval mode, the mean and variance of each batch norm's input over `batches`
+    (normalised (B, 3, H, W) tensors, or `(x, top)` pairs for crops) and re-parameterises the layer so
+    that it still computes the same function (running mean and variance the measured ones, scale
+    sqrt(var + eps), shift the mean plus the old shift); the model is then left in train mode, its
+    batch norms learning from the new data as in training from scratch. For large fine-tuning sets
+    (domain randomisation, thousands of frames); a few hundred own frames keep them frozen.
+    """
+    import torch
+    from torch import nn
+
+    norms = [m for m in model.modules() if isinstance(m, nn.BatchNorm2d)]
+    sums: dict[int, list[Any]] = {id(m): [0.0, 0.0, 0] for m in norms}
+
+    def record(module: nn.BatchNorm2d, inputs: tuple[Any, ...], _out: Any) -> None:
+        z = inputs[0].detach().double()
+        acc = sums[id(module)]
+        acc[0] = acc[0] + z.sum(dim=(0, 2, 3))
+        acc[1] = acc[1] + (z * z).sum(dim=(0, 2, 3))
+        acc[2] += z.shape[0] * z.shape[2] * z.shape[3]
+
+    hooks = [m.register_forward_hook(record) for m in norms]
+    model.eval()
+    with torch.no_grad():
+        for batch in batches:
+            x, top = batch if isinstance(batch, tuple) else (batch, None)
+            model(x, top)
+    for h in hooks:
+        h.remove()
+    with torch.no_grad():
+        for m in norms:
+            total, squares, n = sums[id(m)]
+            if n == 0:
+                continue
+            mean = total / n
+            var = torch.clamp(squares / n - mean * mean, min=0.0)
+            assert m.running_mean is not None and m.running_var is not None  # track_running_stats
+            scale = torch.sqrt(m.running_var.double() + m.eps)  # what the layer divides by now
+            gain = m.weight.double() / scale
+            shift = m.bias.double() - gain * m.running_mean.double()  # the layer is z -> gain z + shift
+            m.running_mean.copy_(mean.float())
+            m.running_var.copy_(var.float())
+            m.weight.copy_((gain * torch.sqrt(var + m.eps)).float())
+            m.bias.copy_((shift + gain * mean).float())
+    model.train()
 
 
 def import_onnx_weights(model: Any, path: Path) -> None:

@@ -59,6 +59,7 @@ from palletpilot.perception.segmentation_data import (
     is_png_folder,
     load_png_folder,
     onnx_training_facts,
+    thaw_batchnorm,
 )
 
 INPUT_WIDTH = 640
@@ -76,6 +77,8 @@ CHANNELS = (16, 32, 48, 64, 96)
 """SegNet feature channels at 1/2, 1/4, 1/8, 1/16 and 1/32 of the input."""
 FINETUNE_LR = 1e-3
 """Default peak learning rate when fine-tuning from an existing model (`--init`)."""
+THAW_BATCHES = 20
+"""Batches of training crops over which `--thaw-norms` measures the batch norms' input statistics."""
 
 
 # -- data ---------------------------------------------------------------------------------------
@@ -330,6 +333,25 @@ def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (to
 # -- training -------------------------------------------------------------------------------------
 
 
+def _batch(frames: Frames, idx: np.ndarray, crop: tuple[int, int], focus: float, rng: np.random.Generator):
+    """One training batch from the frames `idx`: normalised crops (B, 3, h, w), labels (B, h, w), crop tops (B,).
+
+    Each crop is placed by `sample_crop` and flipped and jittered by `augment`; torch tensors.
+    """
+    import torch
+
+    pairs, tops = [], []
+    for i in idx:
+        rgb, lab = frames[int(i)]
+        rows, cols = sample_crop(lab, crop, focus, rng)
+        pairs.append(augment(rgb[rows, cols], lab[rows, cols], rng))
+        tops.append(rows.start)
+    x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
+    x = (x - torch.tensor(MEAN).view(1, 3, 1, 1)) / torch.tensor(STD).view(1, 3, 1, 1)
+    y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
+    return x, y, torch.tensor(tops)
+
+
 def _dice_loss(logits, target, n_classes: int):  # torch tensors
     import torch
 
@@ -370,6 +392,7 @@ def train(
     weight_power: float = 0.5,
     dice: float = 0.5,
     init: Path | None = None,
+    thaw_norms: bool = False,
     log: bool = True,
 ) -> dict:
     """Train on the bundles in `data_dirs`, export the ONNX model to `out`; return the training facts.
@@ -382,7 +405,10 @@ def train(
     With `init` (an ONNX model written by `export_onnx`) the network starts from that model's weights
     and widths (its `training.channels` metadata; `channels` is then ignored) and is fine-tuned: its
     batch norms stay frozen (`segmentation_data.freeze_batchnorm`), the rest trains as above, and the
-    facts record the starting model (`init`: file name, SHA-256 and its own training facts).
+    facts record the starting model (`init`: file name, SHA-256 and its own training facts). With
+    `thaw_norms` the batch norms are instead re-estimated on the data and trained
+    (`segmentation_data.thaw_batchnorm`): for fine-tuning sets of thousands of frames whose colours differ
+    from the old ones (domain randomisation), where frozen statistics hold the network back.
     `log=False` prints nothing (tests).
     """
     import torch
@@ -403,8 +429,6 @@ def train(
     say(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}")
     weights = torch.tensor(class_weights(frames.class_pixels(), weight_power), dtype=torch.float32)
     say(f"class weights {np.round(weights.numpy(), 2).tolist()}")
-    mean = torch.tensor(MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(STD).view(1, 3, 1, 1)
 
     init_facts: dict | None = None
     if init is not None:
@@ -413,9 +437,15 @@ def train(
     model = build_model(channels)
     if init is not None:
         import_onnx_weights(model, init)
-        freeze_batchnorm(model)
         init_facts = {"file": Path(init).name, "sha256": file_sha256(init), "training": previous}
-        say(f"fine-tuning {init} (batch norms frozen)")
+        if thaw_norms:
+            stats_rng = np.random.default_rng([seed, 1])
+            picks = [stats_rng.choice(n, min(batch, n), replace=False) for _ in range(THAW_BATCHES)]
+            thaw_batchnorm(model, (_batch(frames, p, crop, focus, stats_rng)[::2] for p in picks))
+            say(f"fine-tuning {init} (batch norms re-estimated on {THAW_BATCHES} x {batch} crops, trained)")
+        else:
+            freeze_batchnorm(model)
+            say(f"fine-tuning {init} (batch norms frozen)")
     n_params = sum(p.numel() for p in model.parameters())
     say(f"SegNet channels {list(channels)}: {n_params / 1e6:.3f} M parameters")
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
@@ -429,20 +459,11 @@ def train(
     while step < total:
         if cursor + batch > n:
             order, cursor = rng.permutation(n), 0
-        idx = order[cursor : cursor + batch]
+        x, y, tops = _batch(frames, order[cursor : cursor + batch], crop, focus, rng)
         cursor += batch
-        pairs, tops = [], []
-        for i in idx:
-            rgb, lab = frames[int(i)]
-            rows, cols = sample_crop(lab, crop, focus, rng)
-            pairs.append(augment(rgb[rows, cols], lab[rows, cols], rng))
-            tops.append(rows.start)
-        x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
-        x = (x - mean) / std
-        y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
         for group in opt.param_groups:
             group["lr"] = learning_rate(step, total, lr)
-        logits = model(x, torch.tensor(tops))
+        logits = model(x, tops)
         loss = F.cross_entropy(logits, y, weight=weights, ignore_index=IGNORE)
         if dice > 0:
             loss = loss + dice * _dice_loss(logits, y, N_CLASSES)
@@ -481,6 +502,7 @@ def train(
     }
     if init_facts is not None:
         facts["fine_tuned"] = True
+        facts["batch_norms"] = "re-estimated, trained" if thaw_norms else "frozen"
         facts["init"] = init_facts
     export_onnx(model, out, facts, log)
     return facts
@@ -562,6 +584,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default 4e-3, 1e-3 with --init)")
     ap.add_argument("--init", type=Path, default=None, help="fine-tune from the weights of this ONNX model")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument(
+        "--thaw-norms", action="store_true", help="with --init: re-estimate the batch norms on the data and train them"
+    )
     ap.add_argument("--heldout", type=Path, default=None, help="evaluate the exported model on these bundles")
     args = ap.parse_args(argv)
     steps = 1500 if args.steps is None and args.minutes is None else args.steps
@@ -582,6 +607,7 @@ def main(argv: list[str] | None = None) -> int:
         args.weight_power,
         args.dice,
         args.init,
+        args.thaw_norms,
     )
     print(json.dumps(facts), flush=True)
     if args.heldout is not None:

@@ -41,6 +41,12 @@ that has to work on a real camera) each frame also draws, from its own generator
   temperature (warm sodium to cool LED), ceiling-lamp modulation, exposure (x0.5..1.7, saturating)
   and RGB sensor noise 1..8 levels.
 
+With `novel=True` as well (`--randomise novel`) the looks come from settings that the randomisation
+above never draws, for measuring a model on looks it was not trained on: every material (floor,
+walls, racks, pallets, loads, boxes, clothes) any hue at saturation 0.3..1 with any of the renderer's
+textures; light from low (elevation 8..20 deg), exposure x0.3..0.5 or x1.7..2.5 and a strong colour
+cast. Its own generator is seeded with `(seed, index, 2)`.
+
 Photometric effects that need no re-render (blur, motion blur, colour noise, gamma, JPEG, vignetting)
 are drawn per training step by `perception.train_segmentation.augment`.
 
@@ -254,16 +260,21 @@ def _clutter(rng: np.random.Generator, T_world_forklift: SE2, tip_x: float) -> l
 
 
 def render_frame(
-    index: int, seed: int, missions_dir: Path = MISSIONS_DIR, mounts: str = "all", randomise: bool = False
+    index: int,
+    seed: int,
+    missions_dir: Path = MISSIONS_DIR,
+    mounts: str = "all",
+    randomise: bool = False,
+    novel: bool = False,
 ) -> FrameBundle:
     """Frame `index` of the dataset with `seed`: a random scenario rendered with the `Simulator` (640x480).
 
-    Deterministic for `(seed, index, mounts, randomise)`; `randomise`: domain randomisation (module
-    docstring). The bundle carries RGB, depth (m), exact labels, the fork height (m) and the
-    simulator's truth keys.
+    Deterministic for `(seed, index, mounts, randomise, novel)`; `randomise`: domain randomisation,
+    `novel`: with looks the randomisation never draws (module docstring). The bundle carries RGB,
+    depth (m), exact labels, the fork height (m) and the simulator's truth keys.
     """
     rng = np.random.default_rng([int(seed), int(index)])
-    style = np.random.default_rng([int(seed), int(index), 1]) if randomise else None
+    style = np.random.default_rng([int(seed), int(index), 2 if novel else 1]) if randomise or novel else None
     for _attempt in range(_MAX_DRAWS):
         sc, pose, fork_height = random_scenario(rng, missions_dir, mounts, style)
         try:
@@ -274,7 +285,7 @@ def render_frame(
     else:
         raise SimError(f"dataset frame {index} (seed {seed}): no valid scenario in {_MAX_DRAWS} draws")
     if style is not None:
-        randomise_appearance(sim, style)
+        randomise_appearance(sim, style, novel)
     sim.forklift.state.pose = pose  # teleport: a dataset frame needs no driving
     sim.forklift.state.fork_height = fork_height
     sim.forklift.fork_height_cmd = fork_height
@@ -282,11 +293,17 @@ def render_frame(
 
 
 def iter_frames(
-    n: int, seed: int, start: int = 0, missions_dir: Path = MISSIONS_DIR, mounts: str = "all", randomise: bool = False
+    n: int,
+    seed: int,
+    start: int = 0,
+    missions_dir: Path = MISSIONS_DIR,
+    mounts: str = "all",
+    randomise: bool = False,
+    novel: bool = False,
 ) -> Iterator[FrameBundle]:
     """Frames `start .. start + n - 1` of the dataset with `seed` (see `render_frame`)."""
     for i in range(start, start + n):
-        yield render_frame(i, seed, missions_dir, mounts, randomise)
+        yield render_frame(i, seed, missions_dir, mounts, randomise, novel)
 
 
 def generate_dataset(
@@ -297,6 +314,7 @@ def generate_dataset(
     missions_dir: Path = MISSIONS_DIR,
     mounts: str = "all",
     randomise: bool = False,
+    novel: bool = False,
 ) -> list[Path]:
     """Render frames `start .. start + n - 1` for `seed` and save them as `out_dir/frame_%05d.npz`.
 
@@ -305,7 +323,7 @@ def generate_dataset(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts, randomise), start=start):
+    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts, randomise, novel), start=start):
         paths.append(save_bundle(out / f"frame_{i:05d}.npz", bundle))
     return paths
 
@@ -313,6 +331,13 @@ def generate_dataset(
 # -- domain randomisation: colours and light ------------------------------------------------------
 
 _FILM = np.array([0.80, 0.82, 0.84])
+_STYLED_CLASSES = (
+    SemanticClass.DRIVABLE,
+    SemanticClass.VERTICAL,
+    SemanticClass.OTHER_OBJECT,
+    SemanticClass.PERSON,
+)
+"""Classes of the world mesh whose colours the randomisation draws."""
 _WALL = np.array([0.78, 0.77, 0.72])
 _RACK_COLOURS = np.array(
     [
@@ -411,13 +436,18 @@ def _recolour(mesh: LabeledMesh, rows: np.ndarray, colour: np.ndarray, texture: 
         mesh.texture[rows] = texture
 
 
+def _novel_look(style: np.random.Generator) -> tuple[np.ndarray, int]:
+    """A colour and texture that the standard randomisation never draws: any hue, saturation 0.3..1, any texture."""
+    return _any_colour(style, (0.3, 1.0)), int(style.integers(len(Texture)))
+
+
 def _copy(mesh: LabeledMesh) -> LabeledMesh:
     """A copy whose albedo and texture may be changed without touching `mesh`."""
     return LabeledMesh.merge([mesh, LabeledMesh.empty()])
 
 
-def _styled_world(mesh: LabeledMesh, style: np.random.Generator) -> LabeledMesh:
-    """The floor, walls, racks, boxes and people with random colours (per material)."""
+def _styled_world(mesh: LabeledMesh, style: np.random.Generator, novel: bool = False) -> LabeledMesh:
+    """The floor, walls, racks, boxes and people with random colours (per material; `novel`: `_novel_look`)."""
     out = _copy(mesh)
     keys = np.column_stack([out.classes.astype(np.int32), np.round(out.albedo * 200).astype(np.int32)])
     materials, inverse = np.unique(keys, axis=0, return_inverse=True)
@@ -427,7 +457,9 @@ def _styled_world(mesh: LabeledMesh, style: np.random.Generator) -> LabeledMesh:
         rows = inverse == m
         cls, albedo = int(key[0]), key[1:] / 200.0
         texture: int | None = None
-        if cls == SemanticClass.DRIVABLE:
+        if novel and cls in _STYLED_CLASSES:
+            colour, texture = _novel_look(style)
+        elif cls == SemanticClass.DRIVABLE:
             colour, texture = floor_colour, floor_texture
         elif cls == SemanticClass.VERTICAL and np.allclose(albedo, _WALL, atol=0.02):
             colour = _wall_colour(style)
@@ -443,21 +475,33 @@ def _styled_world(mesh: LabeledMesh, style: np.random.Generator) -> LabeledMesh:
     return out
 
 
-def _styled_pallet(mesh: LabeledMesh, plastic: bool, style: np.random.Generator) -> LabeledMesh:
-    """One pallet and its load with random colours (the pallet as a whole, the load as a whole)."""
+def _styled_pallet(mesh: LabeledMesh, plastic: bool, style: np.random.Generator, novel: bool = False) -> LabeledMesh:
+    """One pallet and its load with random colours (the pallet as a whole, the load as a whole).
+
+    `novel`: both from `_novel_look`.
+    """
     out = _copy(mesh)
     pallet = (out.classes == SemanticClass.PALLET_EMPTY) | (out.classes == SemanticClass.PALLET_FULL)
-    _recolour(out, pallet, *_pallet_colour(style, plastic))
     cargo = out.classes == SemanticClass.CARGO
+    if novel:
+        _recolour(out, pallet, *_novel_look(style))
+        _recolour(out, cargo, *_novel_look(style))
+        return out
+    _recolour(out, pallet, *_pallet_colour(style, plastic))
     film = cargo & np.all(np.abs(out.albedo - _FILM) < 0.02, axis=1)
     _recolour(out, film, *_cargo_colour(style, True))
     _recolour(out, cargo & ~film, *_cargo_colour(style, False))
     return out
 
 
-def random_lighting(style: np.random.Generator) -> Lighting:
-    """A random light: direction, ambient and direct intensity, colour temperature, lamp rows and exposure."""
-    elevation, azimuth = np.radians(style.uniform(20.0, 85.0)), style.uniform(0.0, 2.0 * np.pi)
+def random_lighting(style: np.random.Generator, novel: bool = False) -> Lighting:
+    """A random light: direction, ambient and direct intensity, colour temperature, lamp rows and exposure.
+
+    `novel`: from outside those ranges: low light (elevation 8..20 deg), exposure x0.3..0.5 or x1.7..2.5
+    and a strong colour cast.
+    """
+    low, high = (8.0, 20.0) if novel else (20.0, 85.0)
+    elevation, azimuth = np.radians(style.uniform(low, high)), style.uniform(0.0, 2.0 * np.pi)
     direction = (np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation))
     ambient, diffuse = float(style.uniform(0.15, 0.6)), float(style.uniform(0.3, 1.0))
     warm, cool = np.array([1.0, 0.80, 0.58]), np.array([0.86, 0.94, 1.0])
@@ -466,7 +510,11 @@ def random_lighting(style: np.random.Generator) -> Lighting:
     if style.random() < 0.1:
         colour = colour * (0.9, 1.0, 0.85)  # fluorescent green cast
     # Exposure: relative to the default light's brightness (0.4 + 0.7 * ~0.7), x0.5..1.7, saturating.
-    exposure = float(np.exp(style.uniform(np.log(0.5), np.log(1.7)))) * 0.9 / (ambient + 0.6 * diffuse)
+    gain = np.exp(style.uniform(np.log(0.5), np.log(1.7)))
+    if novel:
+        colour = colour * (0.55 + 0.45 * _any_colour(style, (0.6, 1.0)) / 0.85)
+        gain = style.uniform(0.3, 0.5) if style.random() < 0.5 else style.uniform(1.7, 2.5)
+    exposure = float(gain) * 0.9 / (ambient + 0.6 * diffuse)
     colour = colour / colour.max() * exposure
     return Lighting(
         direction=(float(direction[0]), float(direction[1]), float(direction[2])),
@@ -491,16 +539,19 @@ class _LitRenderer(RaycastRenderer):
         return super().render(*args, **kwargs)
 
 
-def randomise_appearance(sim: Simulator, style: np.random.Generator) -> None:
+def randomise_appearance(sim: Simulator, style: np.random.Generator, novel: bool = False) -> None:
     """Recolour the built world, pallets, loads and forks of `sim` and give its renderer a random light.
 
-    Works on the simulator's meshes after it is built (the world's shape and labels are untouched).
+    Works on the simulator's meshes after it is built (the world's shape and labels are untouched);
+    `novel`: with looks the standard randomisation never draws (module docstring).
     """
-    world = _styled_world(sim._fixed_mesh, style)
+    world = _styled_world(sim._fixed_mesh, style, novel)
     pallets = [
-        _styled_pallet(sim._pallet_mesh(p), p.type.material == "plastic", style) for p in sim.pallets if not p.carried
+        _styled_pallet(sim._pallet_mesh(p), p.type.material == "plastic", style, novel)
+        for p in sim.pallets
+        if not p.carried
     ]
     forks = _copy(sim._forks_local)
     forks.albedo[:] = np.clip(forks.albedo * style.uniform(0.6, 2.5), 0.0, 1.0)
     sim._forks_local = forks
-    sim._renderer = _LitRenderer(LabeledMesh.merge([world, *pallets]), random_lighting(style))
+    sim._renderer = _LitRenderer(LabeledMesh.merge([world, *pallets]), random_lighting(style, novel))

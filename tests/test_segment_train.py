@@ -62,6 +62,30 @@ def test_two_step_fine_tune_writes_a_fine_tuned_model(tmp_path, capsys):
     assert facts["data"] == ["seg_finetune"]
 
 
+def test_thawed_batch_norms_compute_what_the_imported_model_computes():
+    torch = pytest.importorskip("torch")
+    from palletpilot.perception.segmentation_data import import_onnx_weights, onnx_training_facts, thaw_batchnorm
+    from palletpilot.perception.train_segmentation import CROP, Frames, _batch, build_model
+
+    model = build_model(tuple(onnx_training_facts(DEFAULT_MODEL)["channels"]))
+    import_onnx_weights(model, DEFAULT_MODEL)
+    model.eval()
+    x = torch.randn(1, 3, 96, 128, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        before = model(x)
+    frames, rng = Frames([EXAMPLE]), np.random.default_rng(0)
+    thaw_batchnorm(model, [_batch(frames, np.arange(len(frames)), CROP, 0.75, rng)[::2] for _ in range(2)])
+    assert model.training  # left to train, batch norms included
+    norm = next(m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    assert float(norm.running_var.min()) > 0.0 and not torch.allclose(
+        norm.running_var, torch.ones_like(norm.running_var)
+    )
+    model.eval()
+    with torch.no_grad():
+        after = model(x)
+    assert float((after - before).abs().max()) < 1e-4 * float(before.abs().max())
+
+
 def _copy_example(tmp_path: Path) -> Path:
     folder = tmp_path / "frames"
     shutil.copytree(EXAMPLE, folder)

@@ -104,3 +104,17 @@ def test_random_lighting_and_colours_change_the_look_not_the_labels():
     np.testing.assert_array_equal(frames[0].labels, frames[1].labels)
     assert frames[0].rgb is not None and frames[1].rgb is not None
     assert np.abs(frames[0].rgb.astype(int) - frames[1].rgb.astype(int)).mean() > 5.0
+
+
+def test_novel_looks_come_from_outside_the_standard_randomisation():
+    from palletpilot.sim.dataset import random_lighting
+
+    for i in range(20):
+        light = random_lighting(np.random.default_rng(i), novel=True)
+        assert 0.13 < light.unit_direction()[2] < 0.35  # low light (8..20 deg), never drawn for training
+    a = render_frame(3, seed=5, randomise=True, novel=True)
+    b = render_frame(3, seed=5, novel=True)
+    np.testing.assert_array_equal(a.rgb, b.rgb)  # deterministic, and novel implies randomised
+    standard = render_frame(3, seed=5, randomise=True)
+    assert a.rgb is not None and standard.rgb is not None
+    assert np.abs(a.rgb.astype(int) - standard.rgb.astype(int)).mean() > 5.0
