@@ -1,6 +1,7 @@
 """Segmentation datasets from the simulator: seeded, varied frame bundles."""
 
 import numpy as np
+import pytest
 
 from palletpilot.perception.frames import SemanticClass, load_bundle
 from palletpilot.sim.dataset import generate_dataset, pallet_nodes, render_frame
@@ -48,8 +49,6 @@ def test_pickup_mounts_are_the_ones_calibrate_accepts():
 
 
 def test_unknown_mount_set_is_refused():
-    import pytest
-
     from palletpilot.sim.dataset import random_scenario
 
     with pytest.raises(ValueError, match="mounts must be one of all, pickup"):
@@ -118,3 +117,18 @@ def test_novel_looks_come_from_outside_the_standard_randomisation():
     standard = render_frame(3, seed=5, randomise=True)
     assert a.rgb is not None and standard.rgb is not None
     assert np.abs(a.rgb.astype(int) - standard.rgb.astype(int)).mean() > 5.0
+
+
+def test_segment_dataset_command_renders_novel_looks_and_refuses_unknown_ones(tmp_path, capsys):
+    from palletpilot.cli import main
+
+    assert (
+        main(["segment", "dataset", str(tmp_path / "novel"), "--frames", "1", "--seed", "5", "--randomise", "novel"])
+        == 0
+    )
+    written = load_bundle(tmp_path / "novel" / "frame_00000.npz")
+    np.testing.assert_array_equal(written.rgb, render_frame(0, seed=5, randomise=True, novel=True).rgb)
+    with pytest.raises(SystemExit) as exc:
+        main(["segment", "dataset", str(tmp_path / "x"), "--frames", "1", "--randomise", "strange"])
+    assert exc.value.code == 2
+    assert "invalid choice: 'strange'" in capsys.readouterr().err
