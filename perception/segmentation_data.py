@@ -14,8 +14,9 @@
   matched to the network's convolutions in the order the network runs them, and a batch norm after a
   convolution gets the identity statistics (mean 0, variance 1 - eps) with the folded bias as its
   shift. The network then computes exactly what the ONNX model does, as long as its batch norms stay
-  in eval mode (`freeze_batchnorm`; fine-tuning keeps them so). A model of another architecture is
-  refused (`PerceptionError`).
+  in eval mode (`freeze_batchnorm`; fine-tuning keeps them so by default). `thaw_batchnorm` instead
+  gives them the statistics of the new data, still computing the same function, so that they can
+  train (`--thaw-norms`). A model of another architecture is refused (`PerceptionError`).
 """
 
 from __future__ import annotations
@@ -177,7 +178,7 @@ def thaw_batchnorm(model: Any, batches: Iterable[Any]) -> None:
     that it still computes the same function (running mean and variance the measured ones, scale
     sqrt(var + eps), shift the mean plus the old shift); the model is then left in train mode, its
     batch norms learning from the new data as in training from scratch. For large fine-tuning sets
-    (domain randomisation, thousands of frames); a few hundred own frames keep them frozen.
+    (thousands of frames of new looks); a few hundred own frames keep them frozen.
     """
     import torch
     from torch import nn

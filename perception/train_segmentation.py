@@ -407,8 +407,9 @@ def train(
     batch norms stay frozen (`segmentation_data.freeze_batchnorm`), the rest trains as above, and the
     facts record the starting model (`init`: file name, SHA-256 and its own training facts). With
     `thaw_norms` the batch norms are instead re-estimated on the data and trained
-    (`segmentation_data.thaw_batchnorm`): for fine-tuning sets of thousands of frames whose colours differ
-    from the old ones (domain randomisation), where frozen statistics hold the network back.
+    (`segmentation_data.thaw_batchnorm`), for fine-tuning sets of thousands of frames whose looks differ
+    from the old ones: the network then fits the new looks more closely and the old ones less
+    (`perception/models/README.md`, "What the fine-tuning traded").
     `log=False` prints nothing (tests).
     """
     import torch
