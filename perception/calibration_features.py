@@ -3,7 +3,8 @@
 Package-internal (`perception.calibration` fits the camera pose to it):
 - `_FrameData`, `_frame_data`: one frame's floor and fork points (camera frame), its depth-edge mask
   (mixed and flying pixels at depth jumps) and inverse intrinsics;
-- `_fit_floor`: the floor plane (RANSAC, open3d) in the camera frame;
+- `_ransac_plane`: a seeded, reproducible RANSAC plane (open3d);
+- `_fit_floor`: the floor plane (RANSAC, refined) in the camera frame;
 - `_fork_distance`: how far points (forklift frame) lie outside the blades' volume;
 - `_Edges`, `_edge_rays`: camera-frame rays through the forks' depth edges against the floor (the tips,
   and the outer sides), found by scanning the depth image with the current pose;
@@ -93,6 +94,21 @@ def _frame_data(frame: FrameBundle, where: str, limits: Limits) -> _FrameData:
     )
 
 
+def _ransac_plane(points: np.ndarray, threshold: float, iterations: int = 200) -> tuple[np.ndarray, float]:
+    """RANSAC plane `n . p + d = 0` through `points` (N x 3, any frame): unit normal `n` and offset `d` (m).
+
+    Reproducible: the same points give the same plane, bit for bit. open3d's RANSAC runs its iterations on
+    several threads and, with its default `probability` < 1, stops as soon as enough of them have run, so
+    which samples were tried depended on thread timing (two or three different planes from one point set
+    in a process). With `probability` 1 every one of the `iterations` seeded samples is tried.
+    """
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d.utility.random.seed(_RNG_SEED)
+    (a, b, c, d), _ = pcd.segment_plane(threshold, 3, iterations, probability=1.0)
+    norm = math.sqrt(a * a + b * b + c * c)
+    return np.array([a, b, c]) / norm, d / norm
+
+
 def _fit_floor(points: np.ndarray, limits: Limits, where: str) -> tuple[np.ndarray, float, np.ndarray]:
     """RANSAC plane, refined by least squares on its inliers: unit normal (towards the camera), offset, inliers.
 
@@ -100,10 +116,8 @@ def _fit_floor(points: np.ndarray, limits: Limits, where: str) -> tuple[np.ndarr
     """
     rng = np.random.default_rng(_RNG_SEED)
     sample = points if len(points) <= 20000 else points[rng.choice(len(points), 20000, replace=False)]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
-    o3d.utility.random.seed(_RNG_SEED)
-    (a, b, c, d0), _ = pcd.segment_plane(limits.ransac_threshold, 3, 200)
-    inl = np.abs(points @ np.array([a, b, c]) + d0) < limits.ransac_threshold  # inliers of the whole set
+    n0, d0 = _ransac_plane(sample, limits.ransac_threshold)
+    inl = np.abs(points @ n0 + d0) < limits.ransac_threshold  # inliers of the whole set
     if inl.sum() < limits.min_floor_points:
         raise CalibrationError(f"{where}: no floor plane: {inl.sum()} points on one plane")
     p = points[inl]

@@ -20,7 +20,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE3
-from palletpilot.perception.calibration_features import _RNG_SEED
+from palletpilot.perception.calibration_features import _RNG_SEED, _ransac_plane
 from palletpilot.perception.calibration_io import R_LEVEL
 from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.specs import ForkGeometry
@@ -56,14 +56,6 @@ def _vanishing_point(fd: _FrameData) -> np.ndarray:
     b = np.array([(-d[1]) * p[0] + d[0] * p[1] for d, p in lines])
     vp, *_ = np.linalg.lstsq(A, b, rcond=None)
     return vp
-
-
-def _ransac_plane(points: np.ndarray, threshold: float) -> tuple[np.ndarray, float]:
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    o3d.utility.random.seed(_RNG_SEED)
-    (a, b, c, d), _ = pcd.segment_plane(threshold, 3, 200)
-    n = np.array([a, b, c])
-    return n / np.linalg.norm(n), d / np.linalg.norm(n)
 
 
 def paper_fit(

@@ -10,6 +10,7 @@ import pytest
 from palletpilot.cli import main
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration import CalibrationError, Calibrator, calibrate
+from palletpilot.perception.calibration_features import _ransac_plane
 from palletpilot.perception.calibration_io import load_calibration, mount_angles, save_calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass, save_bundle
@@ -216,3 +217,22 @@ def test_flying_pixels_at_the_tips_do_not_move_them():
             shifts[settled].append(offsets[1.0, settled] - offsets[0.0, settled])
     assert np.mean(shifts[False]) > 0.0015  # the old count: tips ~2 mm away (1.5 px-wide flying band)
     assert abs(np.mean(shifts[True])) < 0.0008, shifts[True]
+
+
+def test_the_floor_ransac_is_reproducible():
+    """The same points give the same plane every time (open3d's default early stop depended on threads)."""
+    rng = np.random.default_rng(3)
+    n = 20000
+    points = np.c_[rng.uniform(-2, 2, n), 0.5 + rng.normal(0, 0.003, n), rng.uniform(1, 4, n)]
+    points[:4000] = rng.uniform(-2, 4, (4000, 3))  # clutter off the plane
+    planes = {tuple(np.r_[_ransac_plane(points, 0.008)]) for _ in range(30)}
+    assert len(planes) == 1
+    normal_d = np.array(planes.pop())
+    assert abs(normal_d[1]) == pytest.approx(1.0, abs=1e-3) and abs(normal_d[3]) == pytest.approx(0.5, abs=3e-3)
+
+
+@pytest.mark.parametrize("method", ["model", "paper"])
+def test_calibrating_the_same_frames_again_gives_the_same_pose(method):
+    frames = [render(noise=True, seed=s, lift=h)[0] for s, h in ((1, 0.0), (2, 0.3))]
+    poses = {calibrate(frames, FORKS, method).T_forklift_camera.matrix.tobytes() for _ in range(6)}
+    assert len(poses) == 1

@@ -1,7 +1,6 @@
 """run.mcap: a recorded simulated pickup read back with the `mcap` reader, channel by channel."""
 
 import json
-import math
 import re
 import socket
 from collections import Counter, defaultdict
@@ -134,31 +133,7 @@ def test_the_recorder_does_not_change_the_run(recorded, tmp_path):
     r = _run(tmp_path, record=False)
     assert not (tmp_path / "report" / RECORDING).exists()
     again = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert r.success
-    _assert_same_run(_without_wall_clock(again), _without_wall_clock(report))
-
-
-def _assert_same_run(a, b, where: str = "report") -> None:
-    """The same report structure, values and states; numbers equal to 0.005 (deg, mm, m, s).
-
-    Two runs of one seeded mission in one process are not bit-identical: with identical frames and
-    labels, the fused pallet yaw came out -0.069 or -0.067 deg (3 of 8 runs the latter, also with the
-    BLAS on one thread). The calibration is known to differ by about 6e-11 between calls, the likely
-    cause, not yet pinned down. What the recorder could change, states, outcomes, timings, counts,
-    would differ by far more.
-    """
-    if isinstance(a, dict) and isinstance(b, dict):
-        assert a.keys() == b.keys(), where
-        for k in a:
-            _assert_same_run(a[k], b[k], f"{where}.{k}")
-    elif isinstance(a, list) and isinstance(b, list):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _assert_same_run(x, y, f"{where}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        assert math.isclose(a, b, abs_tol=0.005), f"{where}: {a} != {b}"
-    else:
-        assert a == b, f"{where}: {a!r} != {b!r}"
+    assert _without_wall_clock(again) == _without_wall_clock(report) and r.success
 
 
 def _without_wall_clock(doc):
