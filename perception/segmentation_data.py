@@ -10,8 +10,9 @@
 - ONNX weights (`import_onnx_weights`): the initialisers of a model written by
   `perception.train_segmentation.export_onnx` loaded into a fresh `build_model` network with the
   widths of the model's `training.channels` metadata. The export folds every batch normalisation
-  into the convolution before it, so each Conv node of the graph has a weight and a bias; they are
-  matched to the network's convolutions in the order the network runs them, and a batch norm after a
+  into the convolution before it, so each Conv node of the graph has a weight and a bias; they (and
+  the ConvTranspose of a refinement stage) are matched to the network's convolutions in the order the
+  network runs them (`added_tail`: a network with a refinement stage the model lacks), and a batch norm after a
   convolution gets the identity statistics (mean 0, variance 1 - eps) with the folded bias as its
   shift. The network then computes exactly what the ONNX model does, as long as its batch norms stay
   in eval mode (`freeze_batchnorm`; fine-tuning keeps them so by default). `thaw_batchnorm` instead
@@ -138,7 +139,7 @@ def onnx_training_facts(path: Path) -> dict[str, Any]:
 
 
 def _conv_weights(path: Path) -> list[tuple[np.ndarray, np.ndarray | None]]:
-    """(weight, bias) of every Conv node of the ONNX graph, in graph order."""
+    """(weight, bias) of every Conv and ConvTranspose node of the ONNX graph, in graph order."""
     import onnx
     from onnx import numpy_helper
 
@@ -149,7 +150,7 @@ def _conv_weights(path: Path) -> list[tuple[np.ndarray, np.ndarray | None]]:
     inits = {i.name: numpy_helper.to_array(i) for i in proto.graph.initializer}
     out = []
     for node in proto.graph.node:
-        if node.op_type != "Conv":
+        if node.op_type not in ("Conv", "ConvTranspose"):
             continue
         names = list(node.input)
         if len(names) < 2 or names[1] not in inits:
@@ -219,16 +220,18 @@ def thaw_batchnorm(model: Any, batches: Iterable[Any]) -> None:
     model.train()
 
 
-def import_onnx_weights(model: Any, path: Path) -> None:
+def import_onnx_weights(model: Any, path: Path, added_tail: bool = False) -> None:
     """Load the weights of the ONNX model at `path` into the torch `model` (a `build_model` network).
 
+    With `added_tail` the network may run more convolutions after the model's: the stored ones fill
+    the first, the rest keep their initial weights (a refinement stage added to a trained model).
     Raises `PerceptionError` (one line) when the graph's convolutions do not match the network's in
     number or shapes (another architecture or other widths).
     """
     import torch
     from torch import nn
 
-    convs: list[nn.Conv2d] = []
+    convs: list[nn.Conv2d | nn.ConvTranspose2d] = []
     follower: dict[int, nn.BatchNorm2d] = {}
     for module in model.modules():
         children = list(module.children())
@@ -238,7 +241,7 @@ def import_onnx_weights(model: Any, path: Path) -> None:
     hooks = [
         m.register_forward_hook(lambda mod, _i, _o: convs.append(mod))
         for m in model.modules()
-        if isinstance(m, nn.Conv2d)
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))
     ]
     was_training = model.training
     model.eval()
@@ -248,6 +251,8 @@ def import_onnx_weights(model: Any, path: Path) -> None:
         h.remove()
     model.train(was_training)
     stored = _conv_weights(path)
+    if added_tail and len(stored) < len(convs):
+        convs = convs[: len(stored)]
     if len(stored) != len(convs):
         raise PerceptionError(
             f"{path}: {len(stored)} convolutions, the SegNet of these widths has {len(convs)}; another architecture"

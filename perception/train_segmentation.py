@@ -5,7 +5,8 @@ Usage (torch and onnx come with the optional `train` extra; CPU is enough)::
     palletpilot segment dataset DATA_DIR --frames 900 --seed 0     # or sim.dataset.generate_dataset
     python -m palletpilot.perception.train_segmentation DATA_DIR [DATA_DIR ...] --out perception/models/segmenter.onnx \
         --seed 0 [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--crop 384 288] \
-        [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--lr 4e-3] [--threads 2]
+        [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--refine 0] [--lr 4e-3] \
+        [--threads 2]
 
 `--init MODEL.onnx` fine-tunes an exported model instead of training from scratch (its weights and widths,
 `perception.segmentation_data.import_onnx_weights`; batch norms frozen; peak learning rate 1e-3 unless
@@ -24,7 +25,9 @@ ignore; `perception.segmentation_data`). The script never imports the simulator.
    with the pallet in the lower part of the crop so that what stands on it is in view; the rest lie
    anywhere. Loss: class-weighted cross-entropy (weights: pixel frequency ** -`--weight-power`,
    default 0.5, normalised and clipped to 0.5..10; the two pallet classes share one weight) plus
-   `--dice` (default 0.5) times a soft-Dice term; label 255 ignored. Augmentation (`augment`): horizontal
+   `--dice` (default 0.5) times a soft-Dice term; label 255 ignored. `--refine N` gives the network a
+   sub-pixel refinement stage of width N (`build_model`); with `--init` a model without one gets it
+   added, starting from exactly what the model computed. Augmentation (`augment`): horizontal
    flips and photometric effects drawn anew every step (brightness, contrast, white balance, gamma,
    vignetting, Gaussian or motion blur, luminance and colour noise, JPEG re-encoding). AdamW with a
    warm-up plus cosine learning rate. Deterministic for `--seed`, `--steps`, the data and `--threads`
@@ -51,6 +54,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import SemanticClass, load_bundle
 from palletpilot.perception.segmentation_data import (
     file_sha256,
@@ -246,7 +250,7 @@ def augment(rgb: np.ndarray, lab: np.ndarray, rng: np.random.Generator) -> tuple
 # -- model ----------------------------------------------------------------------------------------
 
 
-def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (torch is imported lazily)
+def build_model(channels: tuple[int, ...] = CHANNELS, refine: int = 0):  # -> torch.nn.Module (lazy torch)
     """The `SegNet` encoder-decoder: input (B, 3, H, W) normalised RGB, output (B, 10, H, W) logits.
 
     Fully convolutional (no global pooling, so crops in training and whole frames at run time see the
@@ -260,6 +264,15 @@ def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (to
     encoder's features and refined (a 3x3 convolution; depthwise-separable at 1/2). A 1x1 head gives
     the 1/2-resolution logits, upsampled bilinearly to the input size inside the network. `channels`
     are the widths at 1/2 .. 1/32 (multiples of 16 suit onnxruntime's blocked CPU kernels).
+
+    With `refine` > 0 a sub-pixel refinement stage adds a full-resolution correction to those
+    upsampled logits, for the pixels on class boundaries (most of the pallet classes' errors): the
+    1/2-resolution decoder features, concatenated with the frame's own pixels of each 2 x 2 cell (a
+    learned space-to-depth, `detail`: 2 x 2 stride-2 convolution to 12 channels), a 3x3 convolution
+    to `refine` channels, ReLU, and a 2 x 2 stride-2 transposed convolution to the 10 logits of each
+    full-resolution pixel. That last layer starts at zero, so adding the stage to a trained model
+    (`train(..., refine=N)` with `init`) starts from exactly what the model computed. The input's
+    sides must then be even.
     """
     import torch
     from torch import nn
@@ -304,6 +317,15 @@ def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (to
             self.projections = nn.ModuleList(proj(ch[i + 1], ch[i]) for i in range(len(ch) - 1))
             self.decoder = nn.ModuleList((dws(ch[i]) if i == 0 else cbr(ch[i], ch[i])) for i in range(len(ch) - 1))
             self.head = nn.Conv2d(ch[0], N_CLASSES, 1)
+            self.refine: nn.Sequential | None = None
+            if refine > 0:
+                self.detail = nn.Conv2d(3, 4 * 3, 2, 2)
+                mix = nn.Conv2d(ch[0] + 4 * 3, refine, 3, 1, 1)
+                to_pixels = nn.ConvTranspose2d(refine, N_CLASSES, 2, 2)
+                nn.init.zeros_(to_pixels.weight)
+                assert to_pixels.bias is not None  # built with one
+                nn.init.zeros_(to_pixels.bias)
+                self.refine = nn.Sequential(mix, nn.ReLU(inplace=True), to_pixels)
 
         @staticmethod
         def up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -325,7 +347,10 @@ def build_model(channels: tuple[int, ...] = CHANNELS):  # -> torch.nn.Module (to
             y = feats[-1]
             for i in range(len(feats) - 2, -1, -1):
                 y = self.decoder[i](F.relu(self.up(self.projections[i](y), feats[i]) + feats[i]))
-            return self.up(self.head(y), x)
+            logits = self.up(self.head(y), x)
+            if self.refine is not None:
+                logits = logits + self.refine(torch.cat([y, self.detail(x)], dim=1))
+            return logits
 
     return SegNet()
 
@@ -394,6 +419,7 @@ def train(
     init: Path | None = None,
     thaw_norms: bool = False,
     log: bool = True,
+    refine: int | None = None,
 ) -> dict:
     """Train on the bundles in `data_dirs`, export the ONNX model to `out`; return the training facts.
 
@@ -410,6 +436,9 @@ def train(
     (`segmentation_data.thaw_batchnorm`), for fine-tuning sets of thousands of frames whose looks differ
     from the old ones: the network then fits the new looks more closely and the old ones less
     (`perception/models/README.md`, "What the fine-tuning traded").
+    `refine` is the width of the sub-pixel refinement stage (`build_model`; None: the `init` model's,
+    else 0, none). A larger one than the `init` model's 0 adds the stage to it, starting from exactly
+    what the model computed; any other change of width is refused (`PerceptionError`).
     `log=False` prints nothing (tests).
     """
     import torch
@@ -432,12 +461,23 @@ def train(
     say(f"class weights {np.round(weights.numpy(), 2).tolist()}")
 
     init_facts: dict | None = None
+    init_refine = 0
     if init is not None:
         previous = onnx_training_facts(init)
         channels = tuple(int(c) for c in previous.get("channels", channels))
-    model = build_model(channels)
+        init_refine = int(previous.get("refine", 0))
+        if refine is not None and refine != init_refine and init_refine != 0:
+            raise PerceptionError(
+                f"{init}: has a refinement stage of width {init_refine}; --refine {refine} cannot change it"
+            )
+    refine = init_refine if refine is None else refine
+    if refine and (crop[0] % 2 or crop[1] % 2):
+        raise PerceptionError(f"--crop {crop[0]} {crop[1]}: the refinement stage needs even crop sides")
+    model = build_model(channels, refine)
     if init is not None:
-        import_onnx_weights(model, init)
+        import_onnx_weights(model, init, added_tail=refine > init_refine)
+        if refine > init_refine:
+            say(f"added a sub-pixel refinement stage of width {refine} (starts as a no-op)")
         init_facts = {"file": Path(init).name, "sha256": file_sha256(init), "training": previous}
         if thaw_norms:
             stats_rng = np.random.default_rng([seed, 1])
@@ -448,7 +488,7 @@ def train(
             freeze_batchnorm(model)
             say(f"fine-tuning {init} (batch norms frozen)")
     n_params = sum(p.numel() for p in model.parameters())
-    say(f"SegNet channels {list(channels)}: {n_params / 1e6:.3f} M parameters")
+    say(f"SegNet channels {list(channels)}, refine {refine}: {n_params / 1e6:.3f} M parameters")
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     total = steps if steps is not None else 10**9
     t0 = time.time()
@@ -495,6 +535,7 @@ def train(
         "frames": n,
         "lr": lr,
         "channels": list(channels),
+        "refine": refine,
         "weight_power": weight_power,
         "dice": dice,
         "threads": threads,
@@ -580,6 +621,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crop", type=int, nargs=2, default=list(CROP), metavar=("W", "H"), help="training crop size")
     ap.add_argument("--focus", type=float, default=0.75, help="share of crops placed around a pallet pixel")
     ap.add_argument("--channels", default=",".join(map(str, CHANNELS)), help="SegNet widths at 1/2 .. 1/32")
+    ap.add_argument(
+        "--refine", type=int, default=None, help="sub-pixel refinement width (default: the --init model's, else 0)"
+    )
     ap.add_argument("--weight-power", type=float, default=0.5, help="class weights: frequency ** -power")
     ap.add_argument("--dice", type=float, default=0.5, help="weight of the soft-Dice loss term")
     ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default 4e-3, 1e-3 with --init)")
@@ -609,6 +653,7 @@ def main(argv: list[str] | None = None) -> int:
         args.dice,
         args.init,
         args.thaw_norms,
+        refine=args.refine,
     )
     print(json.dumps(facts), flush=True)
     if args.heldout is not None:

@@ -86,6 +86,43 @@ def test_thawed_batch_norms_compute_what_the_imported_model_computes():
     assert float((after - before).abs().max()) < 1e-4 * float(before.abs().max())
 
 
+def test_an_added_refinement_stage_starts_from_the_model_and_survives_export(tmp_path):
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from palletpilot.perception.errors import PerceptionError
+    from palletpilot.perception.segmentation_data import import_onnx_weights
+    from palletpilot.perception.train_segmentation import build_model, export_onnx
+
+    torch.manual_seed(0)
+    plain = build_model()
+    base = tmp_path / "base.onnx"
+    export_onnx(plain, base, {"refine": 0}, log=False)
+    x = torch.randn(1, 3, 480, 640, generator=torch.Generator().manual_seed(1))
+    before = OnnxSegmenter(base).session.run(None, {"rgb": x.numpy()})[0]
+
+    with pytest.raises(PerceptionError, match="another architecture"):
+        import_onnx_weights(build_model(refine=16), base)  # only when told that a stage was added
+    refined = build_model(refine=16)
+    import_onnx_weights(refined, base, added_tail=True)
+    refined.eval()
+    with torch.no_grad():
+        assert float((refined(x) - torch.from_numpy(before)).abs().max()) < 1e-4
+        for p in [*refined.refine.parameters(), *refined.detail.parameters()]:
+            p.add_(0.1 * torch.randn_like(p))
+        changed = refined(x)
+    assert float((changed - torch.from_numpy(before)).abs().max()) > 0.1  # the stage does act
+
+    out = tmp_path / "refined.onnx"
+    export_onnx(refined, out, {"refine": 16}, log=False)
+    run = OnnxSegmenter(out).session.run(None, {"rgb": x.numpy()})[0]
+    assert float(np.abs(run - changed.numpy()).max()) < 1e-3 * float(np.abs(run).max())
+    again = build_model(refine=16)
+    import_onnx_weights(again, out)
+    again.eval()
+    with torch.no_grad():
+        assert torch.equal(again(x), changed)
+
+
 def _copy_example(tmp_path: Path) -> Path:
     folder = tmp_path / "frames"
     shutil.copytree(EXAMPLE, folder)
