@@ -18,7 +18,7 @@ ignore; `perception.segmentation_data`). The script never imports the simulator.
    resized, area filter and nearest neighbour) go into `DATA_DIR/.segcache_640x480_{rgb,labels}.npy`
    with the list of bundle files in `.segcache_640x480_files.json` (rebuilt when that list changes).
    Training reads the caches memory-mapped, so thousands of frames need no extra RAM.
-2. Train `SegNet` (`build_model`: a light encoder-decoder, 0.42 M parameters, fully convolutional, no
+2. Train `SegNet` (`build_model`: a light encoder-decoder, 0.42-0.43 M parameters, fully convolutional, no
    global pooling, the row coordinate as an input of its coarsest level) on random full-resolution
    crops (`--crop`, default 384 x 288; the network is then run on whole 640 x 480 frames). `--focus`
    (default 0.75) of the crops are placed around a random pallet pixel (pallet_empty or pallet_full),

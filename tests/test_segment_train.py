@@ -67,7 +67,8 @@ def test_thawed_batch_norms_compute_what_the_imported_model_computes():
     from palletpilot.perception.segmentation_data import import_onnx_weights, onnx_training_facts, thaw_batchnorm
     from palletpilot.perception.train_segmentation import CROP, Frames, _batch, build_model
 
-    model = build_model(tuple(onnx_training_facts(DEFAULT_MODEL)["channels"]))
+    facts = onnx_training_facts(DEFAULT_MODEL)
+    model = build_model(tuple(facts["channels"]), int(facts.get("refine", 0)))
     import_onnx_weights(model, DEFAULT_MODEL)
     model.eval()
     x = torch.randn(1, 3, 96, 128, generator=torch.Generator().manual_seed(0))
