@@ -637,7 +637,23 @@ def main(argv: list[str] | None = None) -> int:
     steps = 1500 if args.steps is None and args.minutes is None else args.steps
     channels = tuple(int(c) for c in args.channels.split(","))
     lr = args.lr if args.lr is not None else (FINETUNE_LR if args.init is not None else 4e-3)
-    facts = train(
+    try:
+        facts = _train_from_args(args, steps, channels, lr)
+    except PerceptionError as exc:  # bad input: one line, exit 2
+        print(exc, file=sys.stderr)
+        return 2
+    print(json.dumps(facts), flush=True)
+    if args.heldout is not None:
+        from palletpilot.perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
+
+        result = evaluate_segmenter(OnnxSegmenter(args.out), sorted(args.heldout.glob("*.npz")))
+        print(format_iou(result), flush=True)
+    return 0
+
+
+def _train_from_args(args: argparse.Namespace, steps: int | None, channels: tuple[int, ...], lr: float) -> dict:
+    """`train` with the command line's options."""
+    return train(
         args.data_dirs,
         args.out,
         args.seed,
@@ -655,13 +671,6 @@ def main(argv: list[str] | None = None) -> int:
         args.thaw_norms,
         refine=args.refine,
     )
-    print(json.dumps(facts), flush=True)
-    if args.heldout is not None:
-        from palletpilot.perception.segmentation import OnnxSegmenter, evaluate_segmenter, format_iou
-
-        result = evaluate_segmenter(OnnxSegmenter(args.out), sorted(args.heldout.glob("*.npz")))
-        print(format_iou(result), flush=True)
-    return 0
 
 
 if __name__ == "__main__":
