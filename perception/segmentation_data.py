@@ -11,13 +11,14 @@
   `perception.train_segmentation.export_onnx` loaded into a fresh `build_model` network with the
   widths of the model's `training.channels` metadata. The export folds every batch normalisation
   into the convolution before it, so each Conv node of the graph has a weight and a bias; they (and
-  the ConvTranspose of a refinement stage) are matched to the network's convolutions in the order the
-  network runs them (`added_tail`: a network with a refinement stage the model lacks), and a batch norm after a
-  convolution gets the identity statistics (mean 0, variance 1 - eps) with the folded bias as its
-  shift. The network then computes exactly what the ONNX model does, as long as its batch norms stay
-  in eval mode (`freeze_batchnorm`; fine-tuning keeps them so by default). `thaw_batchnorm` instead
-  gives them the statistics of the new data, still computing the same function, so that they can
-  train (`--thaw-norms`). A model of another architecture is refused (`PerceptionError`).
+  the ConvTranspose of a refinement stage) are matched to the network's convolutions in the order
+  the network runs them (`added_tail`: a network with a refinement stage the model lacks), and a
+  batch norm after a convolution gets the identity statistics (mean 0, variance 1 - eps) with the
+  folded bias as its shift. The network then computes exactly what the ONNX model does, as long as
+  its batch norms stay in eval mode (`freeze_batchnorm`; fine-tuning keeps them so by default).
+  `thaw_batchnorm` instead gives them the statistics of the new data, still computing the same
+  function, so that they can train (`--thaw-norms`). A model of another architecture is refused
+  (`PerceptionError`).
 """
 
 from __future__ import annotations

@@ -57,6 +57,7 @@ import numpy as np
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import SemanticClass, load_bundle
 from palletpilot.perception.segmentation_data import (
+    check_training_inputs,
     file_sha256,
     freeze_batchnorm,
     import_onnx_weights,
@@ -454,13 +455,7 @@ def train(
         if log:
             print(text, flush=True)
 
-    frames = Frames(data_dirs)
-    n = len(frames)
-    say(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}")
-    weights = torch.tensor(class_weights(frames.class_pixels(), weight_power), dtype=torch.float32)
-    say(f"class weights {np.round(weights.numpy(), 2).tolist()}")
-
-    init_facts: dict | None = None
+    # the model's facts and the options are checked before any data is read (caches take minutes)
     init_refine = 0
     if init is not None:
         previous = onnx_training_facts(init)
@@ -471,8 +466,18 @@ def train(
                 f"{init}: has a refinement stage of width {init_refine}; --refine {refine} cannot change it"
             )
     refine = init_refine if refine is None else refine
+    if refine < 0:
+        raise PerceptionError(f"--refine {refine}: the refinement width must be 0 (none) or more")
     if refine and (crop[0] % 2 or crop[1] % 2):
         raise PerceptionError(f"--crop {crop[0]} {crop[1]}: the refinement stage needs even crop sides")
+
+    frames = Frames(data_dirs)
+    n = len(frames)
+    say(f"{n} frames from {', '.join(map(str, data_dirs))} at {INPUT_WIDTH}x{INPUT_HEIGHT}")
+    weights = torch.tensor(class_weights(frames.class_pixels(), weight_power), dtype=torch.float32)
+    say(f"class weights {np.round(weights.numpy(), 2).tolist()}")
+
+    init_facts: dict | None = None
     model = build_model(channels, refine)
     if init is not None:
         import_onnx_weights(model, init, added_tail=refine > init_refine)
@@ -638,7 +643,25 @@ def main(argv: list[str] | None = None) -> int:
     channels = tuple(int(c) for c in args.channels.split(","))
     lr = args.lr if args.lr is not None else (FINETUNE_LR if args.init is not None else 4e-3)
     try:
-        facts = _train_from_args(args, steps, channels, lr)
+        check_training_inputs(args.data_dirs, args.init)
+        facts = train(
+            args.data_dirs,
+            args.out,
+            args.seed,
+            steps,
+            args.minutes,
+            args.batch,
+            lr,
+            args.threads,
+            tuple(args.crop),
+            args.focus,
+            channels,
+            args.weight_power,
+            args.dice,
+            args.init,
+            args.thaw_norms,
+            refine=args.refine,
+        )
     except PerceptionError as exc:  # bad input: one line, exit 2
         print(exc, file=sys.stderr)
         return 2
@@ -649,28 +672,6 @@ def main(argv: list[str] | None = None) -> int:
         result = evaluate_segmenter(OnnxSegmenter(args.out), sorted(args.heldout.glob("*.npz")))
         print(format_iou(result), flush=True)
     return 0
-
-
-def _train_from_args(args: argparse.Namespace, steps: int | None, channels: tuple[int, ...], lr: float) -> dict:
-    """`train` with the command line's options."""
-    return train(
-        args.data_dirs,
-        args.out,
-        args.seed,
-        steps,
-        args.minutes,
-        args.batch,
-        lr,
-        args.threads,
-        tuple(args.crop),
-        args.focus,
-        channels,
-        args.weight_power,
-        args.dice,
-        args.init,
-        args.thaw_norms,
-        refine=args.refine,
-    )
 
 
 if __name__ == "__main__":
