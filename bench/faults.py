@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from palletpilot.bench.missions import RACK_DEEPER_MAX_M
+from palletpilot.bench.missions import RACK_DEEPER_MAX_M, draw_pickup, example_pallet_nodes
 from palletpilot.executor.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.faults import FAULT_KINDS
@@ -106,17 +106,11 @@ def _jump(rng: np.random.Generator) -> dict[str, Any]:
 
 
 def _scenarios(runs: int, seed: int, kill_rate: float) -> list[dict[str, Any]]:
-    from palletpilot.roadmap import NodeType, load_map
-
-    roadmap = load_map(MISSIONS / "warehouse.yaml")
-    pallets = sorted(n.id for n in roadmap.nodes() if n.type is NodeType.PALLET and n.id != "drop")
+    roadmap, pallets = example_pallet_nodes(exclude=("drop",))
     rng = np.random.default_rng(seed)
     out = []
     for i in range(runs):
-        node = str(rng.choice(pallets))
-        rack = roadmap.node(node).height > 0.0
-        pre = roadmap.pre_pallet_of(node)
-        before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
+        node, rack, before = draw_pickup(roadmap, pallets, rng)
         others = [n for n in pallets if n != node and rng.random() < 0.4]
         faults = [_fault(rng) for _ in range(int(rng.integers(1, 4)))]
         kill = None

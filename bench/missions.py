@@ -20,12 +20,16 @@ import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
 
 from palletpilot.executor.cli_args import count, names, seed
 from palletpilot.geometry.fileio import bundled_path
+
+if TYPE_CHECKING:
+    from palletpilot.roadmap import Roadmap
 
 MISSIONS = bundled_path("missions")
 MODES = ("adaptive", "adaptive_truth", "no_adapt")
@@ -45,18 +49,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _scenarios(runs: int, seed: int) -> list[dict]:
+def example_pallet_nodes(exclude: tuple[str, ...] = ()) -> tuple[Roadmap, list[str]]:
+    """The example map (`missions/warehouse.yaml`) and its pallet node ids, sorted, less `exclude`."""
     from palletpilot.roadmap import NodeType, load_map
 
     roadmap = load_map(MISSIONS / "warehouse.yaml")
-    pallets = sorted(n.id for n in roadmap.nodes() if n.type is NodeType.PALLET)
+    return roadmap, sorted(n.id for n in roadmap.nodes() if n.type is NodeType.PALLET and n.id not in exclude)
+
+
+def draw_pickup(roadmap: Roadmap, pallets: list[str], rng: np.random.Generator) -> tuple[str, bool, str]:
+    """Draw a pallet node from `pallets`: (its id, whether it is in a rack, the aisle node before its
+    pre-pallet node, where a run starts)."""
+    node = str(rng.choice(pallets))
+    pre = roadmap.pre_pallet_of(node)
+    before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
+    return node, roadmap.node(node).height > 0.0, before
+
+
+def _scenarios(runs: int, seed: int) -> list[dict]:
+    roadmap, pallets = example_pallet_nodes()
     rng = np.random.default_rng(seed)
     out = []
     for i in range(runs):
-        node = str(rng.choice(pallets))
-        rack = roadmap.node(node).height > 0.0
-        pre = roadmap.pre_pallet_of(node)
-        before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
+        node, rack, before = draw_pickup(roadmap, pallets, rng)
         out.append(
             {
                 "index": i,
