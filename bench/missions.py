@@ -61,9 +61,13 @@ def draw_pickup(roadmap: Roadmap, pallets: list[str], rng: np.random.Generator) 
     """Draw a pallet node from `pallets`: (its id, whether it is in a rack, the aisle node before its
     pre-pallet node, where a run starts)."""
     node = str(rng.choice(pallets))
+    return node, roadmap.node(node).height > 0.0, start_node(roadmap, node)
+
+
+def start_node(roadmap: Roadmap, node: str) -> str:
+    """The aisle node before pallet node `node`'s pre-pallet node: where a benchmark's truck starts."""
     pre = roadmap.pre_pallet_of(node)
-    before = next(u for u in roadmap.graph.predecessors(pre) if u != node)
-    return node, roadmap.node(node).height > 0.0, before
+    return next(u for u in roadmap.graph.predecessors(pre) if u != node)
 
 
 def _scenarios(runs: int, seed: int) -> list[dict]:

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from palletpilot.bench.missions import start_node
 from palletpilot.executor.cli_args import count, names, seed
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
@@ -95,9 +96,7 @@ def _before(node: str) -> str:
     """The aisle node before a pallet's pre-pallet node (where the truck starts)."""
     from palletpilot.roadmap import load_map
 
-    roadmap = load_map(MISSIONS / "warehouse.yaml")
-    pre = roadmap.pre_pallet_of(node)
-    return next(u for u in roadmap.graph.predecessors(pre) if u != node)
+    return start_node(load_map(MISSIONS / "warehouse.yaml"), node)
 
 
 def _free(pose: SE2, loaded: bool) -> dict[str, Any]:
