@@ -1,7 +1,9 @@
 """Benchmarks behind `palletpilot bench NAME`: each measures and prints figures, seeded.
 
 A benchmark module has `add_arguments(parser)` and `run(args) -> dict` (the JSON it prints).
-Public API: `BENCHMARKS`, the registry of name -> module path.
+Public API: `BENCHMARKS`, the registry of name -> module path. Shared by the pickup benchmarks
+(`bench.missions`): `example_pallet_nodes`, `draw_pickup` and `start_node` (a run's pallet node and where
+its truck starts on the example map).
 """
 
 BENCHMARKS: dict[str, str] = {
