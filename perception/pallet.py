@@ -63,6 +63,7 @@ and 4) and `perception.pallet_deck` (step 5).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import Any, NamedTuple
@@ -72,8 +73,16 @@ from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.calibration_io import Calibration
-from palletpilot.perception.errors import PerceptionError
-from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.geometry_labels import (
+    DEFAULT_ENVELOPE,
+    Envelope,
+    LabelsMode,
+    PalletLabels,
+    load_mask,
+    pallet_labels,
+    sources_note,
+)
 from palletpilot.perception.instances import select_instance
 from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
@@ -146,6 +155,9 @@ def estimate_pallet(
     config: PalletEstimatorConfig = DEFAULT_CONFIG,
     *,
     expected: SE2 | None = None,
+    labels: LabelsMode = LabelsMode.MODEL,
+    support_height_m: float = 0.0,
+    envelope: Envelope = DEFAULT_ENVELOPE,
 ) -> PalletEstimate:
     """The pose of the pallet in front of the forks from one labelled RGB-D frame.
 
@@ -155,27 +167,63 @@ def estimate_pallet(
     is given. With `expected` (`T_forklift_pallet` on the floor, SE2: where the pallet should be, in
     the forklift frame) only the pallet instance whose entry face is nearest to it, within
     `config.instances.gate_m`, is fitted and other pallets' pixels are left out (`perception.instances`);
-    without it every pallet-labelled pixel counts. Raises `PalletNotFound` (too few points, no entry
-    face, pockets inconsistent, not where expected) and `PerceptionError` when the frame has no labels.
+    without it every pallet-labelled pixel counts.
+
+    `labels` says which pixels are the pallet's (`perception.geometry_labels`): the frame's labels
+    (`model`, the default here), depth alone in the pallet's height band above `support_height_m`
+    (forklift frame, m: 0 on the floor, the beams' height in a rack) inside `envelope` around `expected`
+    (`geometry`), or both (`fused`, the commands' default); `extras` says how many pixels each source
+    selected, and a `PalletNotFound` message says when only one source saw a pallet. Raises
+    `PalletNotFound` (too few points, no entry face, pockets inconsistent, not where expected) and
+    `PerceptionError` when the `model` mode finds no labels in the frame.
     """
     t_start = time.perf_counter()
     pallet = pallet or PalletType.eur()
-    cfg = config
-    model = _Model.of(pallet)
-    if frame.labels is None:
-        raise PerceptionError("estimate_pallet: the frame has no labels (segment its RGB first)")
     check_intrinsics(frame.K, "frame K")
     T_cf = calibration.T_forklift_camera_at(frame.fork_height)
+    found = pallet_labels(
+        frame, T_cf, pallet, labels, expected=expected, support_height_m=support_height_m, envelope=envelope
+    )
+    try:
+        estimate = _estimate(dataclasses.replace(frame, labels=found.labels), T_cf, pallet, config, expected, found)
+    except PalletNotFound as exc:
+        note = sources_note(found)
+        if not note:
+            raise
+        raise PalletNotFound(exc.reason, f"{exc.detail}{note}") from None
+    if T_world_forklift is not None:
+        estimate = dataclasses.replace(estimate, T_world_pallet=T_world_forklift.to_se3() @ estimate.T_forklift_pallet)
+    return dataclasses.replace(estimate, runtime_ms=(time.perf_counter() - t_start) * 1e3)
+
+
+def _estimate(
+    frame: FrameBundle,
+    T_cf: SE3,
+    pallet: PalletType,
+    cfg: PalletEstimatorConfig,
+    expected: SE2 | None,
+    found_labels: PalletLabels,
+) -> PalletEstimate:
+    """`estimate_pallet`'s steps on a frame whose labels `found_labels` chose (forklift frame, m)."""
+    assert frame.labels is not None  # `pallet_labels` gives labels in every mode
+    model = _Model.of(pallet)
     R, cam = T_cf.R, T_cf.t
     depth = frame.depth
     # 0. and 1. The pallet pixels (of the expected instance only, with `expected`).
     valid, labelled, rows, cols, found = _pallet_pixels(frame, frame.labels, T_cf, cfg, expected)
     rays = _rays(depth, frame.K, R, rows, cols, np.ones(len(rows), bool))
     rng = np.random.default_rng(cfg.seed)
-    on_deck = class_mask(frame.labels, _ON_DECK_CLASSES)  # a load, film, or what else stands on a pallet
 
     # 2. The entry face among the labelled pixels.
     plane, s0, z0, sigma, half_range = _entry_face(rays, model, pallet, cam, cfg, rng)
+    if found_labels.mode != LabelsMode.MODEL:  # a load on the pallet, by geometry, now that the face is known
+        origin = plane.point(cam, s0)
+        rough = SE3(Rotation.from_euler("z", plane.psi), (origin[0], origin[1], z0))
+        load, loaded = load_mask(frame, T_cf, rough, pallet)
+        frame.labels[load] = SemanticClass.CARGO
+        if loaded:  # the deck's front strip and the load's foot are not told apart by height: no deck yaw
+            cfg = dataclasses.replace(cfg, deck_yaw=False)
+    on_deck = class_mask(frame.labels, _ON_DECK_CLASSES)  # a load, film, or what else stands on a pallet
 
     trunc = cfg.truncation_sigma
     n_face = 0
@@ -252,8 +300,8 @@ def estimate_pallet(
         pocket_widths_m=(float(left_w), float(right_w)),
         pocket_centres_y_m=(float(left_c - centre_offset), float(right_c - centre_offset)),
         residual_rms_w=float(sigma),
-        T_world_pallet=None if T_world_forklift is None else T_world_forklift.to_se3() @ T_fp,
-        runtime_ms=(time.perf_counter() - t_start) * 1e3,
+        T_world_pallet=None,
+        runtime_ms=0.0,
         extras={
             "lateral_fit_m": float(s0 - centre_offset),
             "face_distance_m": D,
@@ -262,6 +310,7 @@ def estimate_pallet(
             "deck_height_m": None if deck is None else deck.deck_height,
             "deck_shift_m": None if deck is None else deck.shift,
             **found,
+            **found_labels.to_json(),
         },
     )
     return estimate
