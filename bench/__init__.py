@@ -20,4 +20,5 @@ BENCHMARKS: dict[str, str] = {
     "robot": "palletpilot.bench.robot",
     "recording": "palletpilot.bench.recording",
     "fleet": "palletpilot.bench.fleet",
+    "realdata": "palletpilot.bench.realdata",
 }
