@@ -37,6 +37,7 @@ import numpy as np
 
 from palletpilot.perception.bundle_contract import (
     BUNDLE_KEYS,
+    DIST_LENGTHS,
     MAX_IMAGE_SIDE,
     MAX_TRUTH_ELEMENTS,
     TRUTH_SUFFIX,
@@ -187,6 +188,13 @@ def _header_problems(headers: Mapping[str, _Header], sizes: Mapping[str, int], w
         elif key == "fork_height":
             if h.shape != () or h.dtype.kind not in "fiu":
                 bad(key, f"must be a scalar number, got shape {h.shape} dtype {h.dtype}")
+        elif key == "dist":
+            if h.dtype != np.float64 or len(h.shape) != 1 or h.shape[0] not in DIST_LENGTHS:
+                bad(
+                    key,
+                    f"must be a float64 vector of {', '.join(map(str, DIST_LENGTHS[:-1]))} or {DIST_LENGTHS[-1]} "
+                    f"OpenCV distortion coefficients, got shape {h.shape} dtype {h.dtype}",
+                )
         elif key.endswith(TRUTH_SUFFIX):
             if h.dtype.kind not in "fiub":
                 bad(key, f"truth arrays must be numeric, got dtype {h.dtype}")

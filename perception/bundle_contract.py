@@ -4,10 +4,12 @@ Public API:
 - `SemanticClass`: the ten class ids of the paper (255 = unlabeled).
 - `BUNDLE_KEYS`, `TRUTH_SUFFIX`: the keys a bundle holds (truth keys end in `_true`).
 - Limits: `MAX_IMAGE_SIDE`, `MAX_TRUTH_ELEMENTS`, `MAX_DEPTH_M`, `FOCAL_RANGE`, `PIXEL_ASPECT_RANGE`,
-  `MAX_SKEW`, `FORK_HEIGHT_RANGE_M`, `FORK_HEIGHT_TOLERANCE_M`.
-- Package-internal (`perception.frames`, `perception.bundle_archive`): `_check_bundle` (every field of a
-  bundle, in memory; one `_check_*` step per field), `_k_problems`, `_fork_height_problem`,
-  `_image_shape_ok`, `_error` (one `PerceptionError` for many problem lines).
+  `MAX_SKEW`, `FORK_HEIGHT_RANGE_M`, `FORK_HEIGHT_TOLERANCE_M`, `DIST_LENGTHS`, `MAX_RADIAL_COEFF`,
+  `MAX_TANGENTIAL_COEFF`, `MAX_PRISM_COEFF`, `MAX_TILT_RAD`.
+- Package-internal (`perception.frames`, `perception.bundle_archive`, `perception.distortion`):
+  `_check_bundle` (every field of a bundle, in memory; one `_check_*` step per field), `_k_problems`,
+  `_fork_height_problem`, `_image_shape_ok`, `_error` (one `PerceptionError` for many problem lines),
+  `_radial_factor` and `_fold_radius` (the lens model's radial part).
 
 `perception.frames` re-exports the public names; import them from there.
 
@@ -18,7 +20,10 @@ most `MAX_IMAGE_SIDE` pixels a side, all images of one size; depth finite metres
 reading) up to `MAX_DEPTH_M`, never negative or infinite; a pinhole K with positive focal lengths
 plausible for the image (`FOCAL_RANGE`: fx 0.1 .. 20 times the width, fy likewise the height, nearly
 square pixels), small skew and the principal point inside the image; known class ids only; a finite
-fork height within `FORK_HEIGHT_RANGE_M`. Every problem is one line, `WHERE: KEY: problem` (`WHERE`
+fork height within `FORK_HEIGHT_RANGE_M`; optional lens distortion `dist` (OpenCV order, `DIST_LENGTHS`
+coefficients, each finite and within its limit) whose radial mapping keeps growing out to the image's
+farthest corner (a model that folds back inside the image maps two rays to one pixel: coefficients in
+the wrong order or units, or not a lens of this image). Every problem is one line, `WHERE: KEY: problem` (`WHERE`
 the file's path, or `FrameBundle` for a bundle built in memory), and every problem is reported
 (`PerceptionError.problems`).
 
@@ -55,7 +60,7 @@ class SemanticClass(IntEnum):
     UNLABELED = 255
 
 
-BUNDLE_KEYS = ("depth", "K", "labels", "rgb", "fork_height")
+BUNDLE_KEYS = ("depth", "K", "labels", "rgb", "fork_height", "dist")
 """Keys a bundle file may hold besides truth keys (which end in `TRUTH_SUFFIX`)."""
 TRUTH_SUFFIX = "_true"
 _VALID_LABELS = np.array([int(c) for c in SemanticClass], dtype=np.uint8)
@@ -77,6 +82,19 @@ FORK_HEIGHT_RANGE_M = (0.0, 20.0)
 """The lift heights (m, fork bottoms above the floor) any mast reaches; a vehicle's own is narrower."""
 FORK_HEIGHT_TOLERANCE_M = 0.02
 """A lift height reading may stray this far (m) outside a range (sensor noise at the floor)."""
+DIST_LENGTHS = (4, 5, 8, 12, 14)
+"""Lens distortion coefficient counts (OpenCV order): k1 k2 p1 p2 (4), + k3 (5, ROS `plumb_bob`), + k4 k5 k6
+(8, ROS `rational_polynomial`), + s1 s2 s3 s4 thin prism (12), + tau_x tau_y sensor tilt (14, an OAK's)."""
+MAX_RADIAL_COEFF = 1000.0
+"""The largest |k1..k6|: rational models of wide lenses reach tens (their numerator and denominator nearly
+cancel); what matters more is checked from the image (`_fold_radius`)."""
+MAX_TANGENTIAL_COEFF = 0.1
+"""The largest |p1|, |p2|: decentering of a real lens is about 0.001 (0.1 is a lens tilted by degrees)."""
+MAX_PRISM_COEFF = 1.0
+"""The largest |s1..s4| (thin prism terms, normalised image units)."""
+MAX_TILT_RAD = 0.2
+"""The largest |tau_x|, |tau_y| (rad): the sensor's tilt behind the lens, about 11 deg."""
+_REACH = 6.0  # a lens model must bring a ray at most this many times the corner's radius to the image corner
 
 
 def _error(problems: list[str], summary: str = "") -> PerceptionError:
@@ -100,6 +118,33 @@ def _fork_height_problem(value: float, mast_range_m: tuple[float, float] | None)
     if not lo - FORK_HEIGHT_TOLERANCE_M <= value <= hi + FORK_HEIGHT_TOLERANCE_M:
         return f"{value:.4g} m is outside {what} {lo:g}..{hi:g} m (lift height of the fork bottoms)"
     return None
+
+
+def _radial_factor(dist: np.ndarray, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The radial part of an OpenCV lens model at squared ideal radii `r2` (normalised image units):
+    (numerator 1 + k1 r2 + k2 r2^2 + k3 r2^3, denominator 1 + k4 r2 + k5 r2^2 + k6 r2^3)."""
+    k = np.zeros(6)
+    k[:2] = dist[:2]
+    if len(dist) > 4:
+        k[2] = dist[4]
+    if len(dist) >= 8:
+        k[3:6] = dist[5:8]
+    num = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+    den = 1.0 + r2 * (k[3] + r2 * (k[4] + r2 * k[5]))
+    return num, den
+
+
+def _fold_radius(dist: np.ndarray, r_max: float, samples: int = 2000) -> tuple[float, np.ndarray, np.ndarray]:
+    """Where the radial mapping r -> r * num / den stops growing (ideal normalised radius; inf when it grows
+    on all of 0..`r_max`), with the sampled radii and their distorted radii (for callers that need more)."""
+    r = np.linspace(0.0, r_max, samples)
+    num, den = _radial_factor(dist, r * r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rd = r * num / den
+    bad = ~((den > 0) & (num > 0) & np.isfinite(rd))
+    bad[1:] |= np.diff(rd) <= 0
+    first = int(np.argmax(bad)) if bad.any() else -1
+    return (float(r[max(first - 1, 0)]) if first >= 0 else math.inf), r, rd
 
 
 def _k_problems(k: np.ndarray, shape: tuple[int, int] | None) -> list[str]:
@@ -156,14 +201,17 @@ def _check_bundle(
     truth: Mapping[str, object],
     where: str,
     mast_range_m: tuple[float, float] | None = None,
+    dist: object = None,
 ) -> None:
     """Raise `PerceptionError` with one line (`where: key: problem`) per entry that breaks the contract."""
     report = _Report(where)
     shape = _check_depth(report, depth)
-    _check_k(report, K, shape)
+    k_ok = _check_k(report, K, shape)
     _check_images(report, labels, rgb, shape)
     _check_fork_height(report, fork_height, mast_range_m)
     _check_truth(report, truth)
+    if dist is not None:
+        _check_dist(report, dist, K if k_ok and shape is not None else None, shape)
     if report.problems:
         raise _error(report.problems)
 
@@ -194,8 +242,9 @@ def _check_depth(report: _Report, depth: object) -> tuple[int, int] | None:
     return shape
 
 
-def _check_k(report: _Report, K: object, shape: tuple[int, int] | None) -> None:
-    """Check K, against the image size `shape` when known."""
+def _check_k(report: _Report, K: object, shape: tuple[int, int] | None) -> bool:
+    """Check K, against the image size `shape` when known; whether it passed."""
+    before = len(report.problems)
     k = report.array("K", K)
     if k is not None:
         if k.dtype != np.float64:
@@ -207,6 +256,64 @@ def _check_k(report: _Report, K: object, shape: tuple[int, int] | None) -> None:
         else:
             for problem in _k_problems(k, shape):
                 report.bad("K", problem)
+    return k is not None and len(report.problems) == before
+
+
+def _check_dist(report: _Report, dist: object, K: object, shape: tuple[int, int] | None) -> None:
+    """Check the lens distortion coefficients; with a good K and the image size, also that the lens model
+    keeps growing out to the image's farthest corner (else two rays land on one pixel)."""
+    d = report.array("dist", dist)
+    if d is None:
+        return
+    lengths = ", ".join(map(str, DIST_LENGTHS[:-1])) + f" or {DIST_LENGTHS[-1]}"
+    if d.dtype != np.float64 or d.ndim != 1 or len(d) not in DIST_LENGTHS:
+        report.bad(
+            "dist",
+            f"must be a float64 vector of {lengths} OpenCV coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6"
+            f"[, s1, s2, s3, s4[, tau_x, tau_y]]]]), got shape {d.shape} dtype {d.dtype}",
+        )
+        return
+    if not np.all(np.isfinite(d)):
+        report.bad("dist", f"has non-finite coefficients (NaN or inf): {d.tolist()}")
+        return
+    groups = (
+        ("k1..k6", [0, 1, 4, 5, 6, 7], MAX_RADIAL_COEFF),
+        ("p1, p2", [2, 3], MAX_TANGENTIAL_COEFF),
+        ("s1..s4", [8, 9, 10, 11], MAX_PRISM_COEFF),
+        ("tau_x, tau_y (rad)", [12, 13], MAX_TILT_RAD),
+    )
+    for name, idx, limit in groups:
+        values = d[[i for i in idx if i < len(d)]]
+        if values.size and float(np.max(np.abs(values))) > limit:
+            report.bad("dist", f"{name} up to {float(np.max(np.abs(values))):.4g}: beyond {limit:g} for a real lens")
+            return
+    if isinstance(K, np.ndarray) and shape is not None:
+        problem = _lens_problem(d, K, shape)
+        if problem:
+            report.bad("dist", problem)
+
+
+def _lens_problem(d: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> str | None:
+    """Why a lens model cannot describe an H x W image with intrinsics K (its radial part), or None."""
+    h, w = shape
+    corners = np.array([[-0.5, -0.5, 1.0], [w - 0.5, -0.5, 1.0], [-0.5, h - 0.5, 1.0], [w - 0.5, h - 0.5, 1.0]])
+    xy = (corners @ np.linalg.inv(K).T)[:, :2]
+    corner = float(np.max(np.hypot(xy[:, 0], xy[:, 1])))  # the farthest corner's distorted radius
+    fold, r, rd = _fold_radius(d, _REACH * corner)
+    reached = np.flatnonzero(rd >= corner)
+    if reached.size and r[reached[0]] <= fold:
+        return None
+    px = float(K[0, 0])
+    if math.isfinite(fold):
+        return (
+            f"the lens model folds back {fold * px:.0f} px from the principal point, before it reaches the image's "
+            f"farthest corner ({corner * px:.0f} px): two rays would land on one pixel (coefficients in the wrong "
+            "order or units, or not this image's lens?)"
+        )
+    return (
+        f"the lens model brings no ray within {_REACH:g} x the corner's radius to the image's farthest corner: "
+        "far stronger than a pinhole lens bends (a fisheye model, or wrong coefficients?)"
+    )
 
 
 def _check_images(report: _Report, labels: object, rgb: object, shape: tuple[int, int] | None) -> None:

@@ -62,6 +62,7 @@ from palletpilot.perception.calibration_features import (
 )
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.calibration_paper import paper_fit
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import ForkGeometry
@@ -406,6 +407,7 @@ def calibrate(
         raise CalibrationError("no frames to calibrate from")
     names = list(names) if names is not None else [f"frame {i}" for i in range(len(frames))]
     t0 = time.perf_counter()
+    frames = [undistort_bundle(f) for f in frames]  # an ideal pinhole image: every ray from K alone
     data = [_frame_data(f, n, limits) for f, n in zip(frames, names, strict=True)]
     where = names[0] if len(names) == 1 else f"{len(names)} frames"
     warnings: list[str] = []

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.frames import FrameBundle
 
 MIN_POINTS = 150
@@ -105,7 +106,9 @@ def _depth_edges(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def check_volume(frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
-    """Count the frame's depth points inside `volume` and measure how much of it the camera saw."""
+    """Count the frame's depth points inside `volume` and measure how much of it the camera saw (a frame
+    with lens distortion is undistorted first: `perception.distortion`)."""
+    frame = undistort_bundle(frame)
     T_fc = calibration.T_forklift_camera_at(frame.fork_height)
     R, t = T_fc.rotation.as_matrix(), np.asarray(T_fc.t, dtype=float)
     depth = frame.depth

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from palletpilot.geometry import SE3
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.perception.specs import ForkGeometry
@@ -127,9 +128,11 @@ def _tip_rays(frames: Sequence[FrameBundle], T: SE3, forks: ForkGeometry) -> lis
 
 
 def measure_profile(frames: Sequence[FrameBundle], forks: ForkGeometry, T_forklift_camera: SE3) -> ProfileMeasurement:
-    """The blade profile near the tips from frames of the forks (see the module docstring)."""
+    """The blade profile near the tips from frames of the forks (see the module docstring); frames with lens
+    distortion are undistorted first (`perception.distortion`)."""
     if not frames:
         raise ProfileError("no frames")
+    frames = [undistort_bundle(f) for f in frames]
     T = T_forklift_camera
     pts = np.vstack([_points(f, T, forks) for f in frames])
     interior = np.abs(np.abs(pts[:, 1]) - forks.centre_y) < 0.5 * forks.width - 0.01

@@ -9,6 +9,11 @@ Data contract (ARCHITECTURE.md), all in the camera's optical frame (x right, y d
 - `labels`: optional uint8 H x W semantic class ids (`SemanticClass`; 255 = unlabeled).
 - `rgb`: optional uint8 H x W x 3, RGB order.
 - `fork_height`: lift height (m) of the fork bottoms when the frame was taken, default 0.
+- `dist`: optional float64 lens distortion coefficients of the colour image, in OpenCV's order and
+  model (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tau_x, tau_y]]]]: 4, 5, 8, 12 or 14 of them; ROS
+  `plumb_bob` is the 5, `rational_polynomial` the 8). None or all zero: an ideal pinhole image. With
+  coefficients, `K` alone does not deproject a pixel: `perception.distortion.undistort_bundle` gives
+  the same frame as an ideal pinhole camera with the same K, and perception calls it first.
 - `truth`: simulator-only arrays under keys ending in `_true` (for example
   `T_forklift_camera_true`, `T_forklift_pallet_true`, 4 x 4 float64). Perception never reads them;
   they exist so tests and benchmarks can score estimates against the truth.
@@ -19,12 +24,12 @@ Public API: `FrameBundle`, `save_bundle`, `load_bundle`, `load_bundles`, and re-
 modules below (import them from here): `SemanticClass`, `BUNDLE_KEYS`, `TRUTH_SUFFIX` and the limits
 (`MAX_IMAGE_SIDE`, `MAX_DEPTH_M`, `FOCAL_RANGE`, `PIXEL_ASPECT_RANGE`, `MAX_SKEW`,
 `FORK_HEIGHT_RANGE_M`, `FORK_HEIGHT_TOLERANCE_M`, `MAX_TRUTH_ELEMENTS`, `MAX_BUNDLE_FILE_BYTES`,
-`MAX_BUNDLE_BYTES`, `MAX_MEMBERS`, `MAX_HEADER_BYTES`).
+`MAX_BUNDLE_BYTES`, `MAX_MEMBERS`, `MAX_HEADER_BYTES`, `DIST_LENGTHS`).
 
 Every bundle is checked, however it was made (`FrameBundle.__post_init__`, the checks in
 `perception.bundle_contract`): dtypes and shapes, image size, depth in metres, a plausible pinhole K,
-known class ids, a plausible fork height. A bundle file may come from anywhere (a camera, a
-colleague, a damaged disk, someone hostile), so `load_bundle` reads it with
+known class ids, a plausible fork height, a lens model that fits the image. A bundle file may come
+from anywhere (a camera, a colleague, a damaged disk, someone hostile), so `load_bundle` reads it with
 `perception.bundle_archive`: the zip directory and every `.npy` header are checked against the limits
 before a single array is decompressed, object arrays (pickles) are never loaded, and a damaged archive
 is `FILE: corrupt frame bundle: ...`. Every problem is one line that starts with the file's path
@@ -56,6 +61,7 @@ from palletpilot.perception.bundle_archive import (
 )
 from palletpilot.perception.bundle_contract import (
     BUNDLE_KEYS,
+    DIST_LENGTHS,
     FOCAL_RANGE,
     FORK_HEIGHT_RANGE_M,
     FORK_HEIGHT_TOLERANCE_M,
@@ -73,6 +79,7 @@ from palletpilot.perception.errors import PerceptionError
 
 __all__ = [
     "BUNDLE_KEYS",
+    "DIST_LENGTHS",
     "FOCAL_RANGE",
     "FORK_HEIGHT_RANGE_M",
     "FORK_HEIGHT_TOLERANCE_M",
@@ -118,11 +125,20 @@ class FrameBundle:
     truth: dict[str, np.ndarray] = field(default_factory=dict)
     stamp_s: float | None = None
     """Capture time (s, on the clock of whoever grabbed it: the runner's) when known; not stored in `.npz`."""
+    dist: np.ndarray | None = None
+    """Lens distortion coefficients (OpenCV order, float64; module docstring), or None for an ideal pinhole."""
 
     def __post_init__(self) -> None:
         where, mast_range_m = _CHECK_AS.get()
-        _check_bundle(self.depth, self.K, self.labels, self.rgb, self.fork_height, self.truth, where, mast_range_m)
+        _check_bundle(
+            self.depth, self.K, self.labels, self.rgb, self.fork_height, self.truth, where, mast_range_m, self.dist
+        )
         object.__setattr__(self, "fork_height", float(self.fork_height))
+
+    @property
+    def distorted(self) -> bool:
+        """Whether the image has lens distortion (`dist` with a coefficient other than zero)."""
+        return self.dist is not None and bool(np.any(self.dist != 0.0))
 
     @property
     def height(self) -> int:
@@ -153,6 +169,8 @@ def save_bundle(path: str | Path, bundle: FrameBundle) -> Path:
         arrays["labels"] = bundle.labels
     if bundle.rgb is not None:
         arrays["rgb"] = bundle.rgb
+    if bundle.dist is not None:
+        arrays["dist"] = bundle.dist
     arrays.update(bundle.truth)
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)  # type: ignore[arg-type]  # numpy stubs: a key could be allow_pickle
@@ -182,6 +200,7 @@ def load_bundle(
             rgb=arrays.get("rgb"),
             fork_height=0.0 if fork_height is None else float(fork_height),
             truth=truth,
+            dist=arrays.get("dist"),
         )
     finally:
         _CHECK_AS.reset(token)

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass, load_bundle
 
@@ -228,8 +229,11 @@ class GroundTruthSegmenter:
 def ensure_labels(bundle: FrameBundle, segmenter: SegmentationService) -> FrameBundle:
     """`bundle` itself when it has labels, else a copy with labels segmented from its RGB.
 
+    A bundle with lens distortion is undistorted first (`perception.distortion.undistort_bundle`): the
+    model learnt from ideal pinhole images, and its labels then fit the depth perception deprojects.
     Raises `PerceptionError` when the bundle has neither labels nor RGB.
     """
+    bundle = undistort_bundle(bundle)
     if bundle.labels is not None:
         return bundle
     if bundle.rgb is None:

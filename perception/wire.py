@@ -15,16 +15,19 @@ LAN carry a 640 x 480 RGB-D frame, 2.4 MB, in a few milliseconds; compressing it
 | 1 | reserved (0) |
 | 4, 4 | image height H, width W (px, uint32) |
 | 4 | length of the JSON meta (bytes, uint32) |
-| n | JSON meta: `{"K": 3 x 3 (px), "fork_height": m, "stamp_s": s or null}` |
+| n | JSON meta: `{"K": 3 x 3 (px), "fork_height": m, "stamp_s": s or null}`, and `"dist"` (below) |
 | H W 4 (or 2) | depth, row-major, camera optical frame (z-depth along the optical axis) |
 | H W | labels uint8 (class ids), when flagged |
 | H W 3 | rgb uint8, RGB order, when flagged |
 
-Truth arrays (`*_true`, simulator-only) are not sent: perception never reads them. The decoder
-checks the header against the limits (`MAX_IMAGE_SIDE`, `MAX_META_BYTES`) and the exact payload size
-before it allocates anything, then builds the `FrameBundle`, whose constructor checks the whole data
-contract (`perception.bundle_contract`). Every problem raises `PerceptionError`, one line naming
-`where` (the key the payload came on): `palletpilot/perception/estimate_pallet: frame: ...`.
+The meta holds `"dist": [k1, k2, p1, p2, ...]` (OpenCV order) only for a frame with lens distortion
+coefficients: a frame without them is sent byte for byte as before the key existed, and a meta without
+it decodes to a frame without it. Truth arrays (`*_true`, simulator-only) are not sent: perception never
+reads them. The decoder checks the header against the limits (`MAX_IMAGE_SIDE`, `MAX_META_BYTES`) and
+the exact payload size before it allocates anything, then builds the `FrameBundle`, whose constructor
+checks the whole data contract (`perception.bundle_contract`). Every problem raises `PerceptionError`,
+one line naming `where` (the key the payload came on): `palletpilot/perception/estimate_pallet: frame:
+...`.
 
 **Request** (`encode_request` / `decode_request`): magic `PPRQ`, version (1), frame count (0..16),
 reserved (0), JSON parameter length (uint32), the parameters (strict JSON), then per frame its length
@@ -58,7 +61,7 @@ from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import dumps_json, parse_json, validate_model
-from palletpilot.perception.bundle_contract import MAX_IMAGE_SIDE
+from palletpilot.perception.bundle_contract import DIST_LENGTHS, MAX_IMAGE_SIDE
 from palletpilot.perception.calibration_io import Calibration, CalibrationFile
 from palletpilot.perception.clearance import Volume, VolumeCheck
 from palletpilot.perception.errors import CalibrationError, PerceptionError
@@ -73,7 +76,7 @@ DEFAULT_PREFIX = "palletpilot/perception"
 QUERIES = ("calibrate", "estimate_pallet", "check_volume", "segment", "health")
 """The queryables under the prefix (`PREFIX/NAME`)."""
 MAX_META_BYTES = 64 * 1024
-"""The largest JSON meta of one frame (bytes): K, fork height and stamp take about 200."""
+"""The largest JSON meta of one frame (bytes): K, fork height, stamp and 14 distortion coefficients take about 600."""
 MAX_PARAMS_BYTES = 1024 * 1024
 """The largest JSON parameter block of a request or JSON result (bytes); a pallet type is about 1 kB."""
 MAX_FRAMES = 16
@@ -121,7 +124,10 @@ def _frame_parts(frame: FrameBundle, depth: DepthEncoding) -> tuple[bytes, list[
     """The header with the meta, and the arrays in wire order as C-contiguous arrays of their wire dtype."""
     h, w = frame.depth.shape
     flags = (_HAS_LABELS if frame.labels is not None else 0) | (_HAS_RGB if frame.rgb is not None else 0)
-    meta = dumps_json({"K": frame.K.tolist(), "fork_height": frame.fork_height, "stamp_s": frame.stamp_s}).encode()
+    doc: dict[str, Any] = {"K": frame.K.tolist(), "fork_height": frame.fork_height, "stamp_s": frame.stamp_s}
+    if frame.dist is not None:
+        doc["dist"] = frame.dist.tolist()
+    meta = dumps_json(doc).encode()
     if depth == "mm16":
         mm = np.rint(np.nan_to_num(frame.depth, nan=0.0) * 1000.0)
         if mm.size and float(mm.max()) > _MAX_MM:
@@ -199,24 +205,33 @@ def decode_frame(payload: bytes | memoryview, where: str = "frame") -> FrameBund
     rgb = array("u1", sizes[2], (h, w, 3)).copy() if sizes[2] else None
     token = _CHECK_AS.set((f"{where}: frame", None))
     try:
-        return FrameBundle(depth, meta["K"], labels, rgb, meta["fork_height"], stamp_s=meta["stamp_s"])
+        return FrameBundle(
+            depth, meta["K"], labels, rgb, meta["fork_height"], stamp_s=meta["stamp_s"], dist=meta["dist"]
+        )
     finally:
         _CHECK_AS.reset(token)
 
 
 def _meta(text: bytes, where: str) -> dict[str, Any]:
-    """The frame's JSON meta: K (float64 3 x 3), fork height (m) and stamp (s or None)."""
+    """The frame's JSON meta: K (float64 3 x 3), fork height (m), stamp (s or None) and the optional lens
+    distortion coefficients (float64 vector or None; their count and values are the bundle contract's)."""
     doc = _json_object(text, f"{where}: frame meta")
-    unknown = sorted(set(doc) - {"K", "fork_height", "stamp_s"})
+    unknown = sorted(set(doc) - {"K", "fork_height", "stamp_s", "dist"})
     if unknown or "K" not in doc:
         raise PerceptionError(f"{where}: frame meta: needs K, fork_height, stamp_s; unknown keys {unknown}")
     K = _matrix(doc["K"], 3, f"{where}: frame meta: K")
     fork_height = _number(doc.get("fork_height", 0.0), f"{where}: frame meta: fork_height")
     stamp = doc.get("stamp_s")
+    dist = doc.get("dist")
+    if dist is not None:
+        if not isinstance(dist, list) or len(dist) > max(DIST_LENGTHS):
+            raise PerceptionError(f"{where}: frame meta: dist: expected a list of at most {max(DIST_LENGTHS)} numbers")
+        dist = np.array([_number(v, f"{where}: frame meta: dist") for v in dist], dtype=np.float64)
     return {
         "K": K,
         "fork_height": fork_height,
         "stamp_s": None if stamp is None else _number(stamp, f"{where}: stamp_s"),
+        "dist": dist,
     }
 
 
