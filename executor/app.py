@@ -40,6 +40,7 @@ from palletpilot.geometry import OutputError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.labels_mode import SIM_TRUTH, LabelsMode
 from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.faults import FaultInjector
@@ -50,9 +51,15 @@ if TYPE_CHECKING:  # zenoh loads only for a run that uses the perception service
     from palletpilot.executor.perception_remote import PerceptionMode
 
 ClockKind = Literal["sim", "wall"]
-Labels = Literal["model", "truth"]
-"""Where perception's labels come from in a simulated run: the shipped ONNX model on the RGB, or the
-simulator's exact labels (`truth`)."""
+Labels = Literal["model", "geometry", "fused", "truth"]
+"""How perception selects its pixels in a simulated run (`perception.labels_mode`): depth geometry with the
+shipped ONNX model's hints on the simulator's RGB (`fused`, the default, as on a truck), depth alone
+(`geometry`), the model alone (`model`), or the simulator's exact labels in the model's place (`truth`)."""
+
+
+def labels_mode(labels: str) -> LabelsMode:
+    """The perception mode of a run's `labels`: `truth` is the model mode fed the simulator's labels."""
+    return LabelsMode.MODEL if labels == SIM_TRUTH else LabelsMode(labels)
 
 
 @dataclass
@@ -120,7 +127,7 @@ def run_simulated(
     clock: ClockKind = "sim",
     journal: str | Path | None = None,
     controls: Controls | None = None,
-    labels: Labels = "model",
+    labels: Labels = "fused",
     perception: PerceptionMode = "local",
     perception_connect: Sequence[str] = (),
     foxglove: int | None = None,
@@ -132,8 +139,10 @@ def run_simulated(
     `clock`: `sim` (simulated time, deterministic) or `wall` (real time at 20 Hz). `journal`: an SQLite
     file that records the progress for `resume_simulated`. `on_start(runner)` is called once the
     runner exists and before it runs. `controls`: pause / cancel flags (the CLI's signal handlers).
-    `labels`: `model` (perception segments the simulator's RGB with the shipped ONNX model, as on a
-    truck) or `truth` (the simulator's exact labels, with its label noise; for comparison).
+    `labels`: which pixels perception takes for the pallet, the floor and the forks (`Labels`): `fused`
+    (depth geometry, with the shipped ONNX model's hints on the simulator's RGB, as on a truck),
+    `geometry` (depth alone), `model` (the model alone) or `truth` (the simulator's exact labels, with its
+    label noise, as the model's; for comparison).
     `perception`: `local` (in this process), `remote` (the `palletpilot perception serve` service at
     `perception_connect`) or `serve-local` (a service started for the run; `executor.perception_remote`).
     `foxglove`: also serve the run live over Foxglove WebSocket on `foxglove_host` at this port
@@ -317,7 +326,7 @@ def _execute(
     controls: Controls | None,
     run_id: str,
     point: ResumePoint | None,
-    labels: Labels = "model",
+    labels: Labels = "fused",
     perception_mode: PerceptionMode = "local",
     perception_connect: Sequence[str] = (),
     foxglove_port: int | None = None,
@@ -339,13 +348,15 @@ def _execute(
     try:
         if adapt:
             segmenter = None
-            if labels == "model":  # the truck's view: RGB through the shipped model, no labels from the simulator
-                segmenter = OnnxSegmenter(DEFAULT_MODEL) if perception_mode == "local" else None  # else the service's
+            if labels != SIM_TRUTH:  # the truck's view: no labels from the simulator
                 grab = _without_labels(injector.grab)
+                if labels != LabelsMode.GEOMETRY and perception_mode == "local":  # RGB through the shipped model
+                    segmenter = OnnxSegmenter(DEFAULT_MODEL)  # (a service segments with its own)
             if recorder is not None and segmenter is not None:  # run.mcap: the labels perception segmented
                 segmenter = recorder.wrap_segmenter(segmenter)
             if perception_mode == "local":
-                perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
+                local = LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter, labels=labels_mode(labels))
+                perception = injector.perception(local)
     except BaseException:
         if recorder is not None:  # the file finished, the port freed
             recorder.close()
@@ -377,7 +388,14 @@ def _execute(
         if adapt and perception_mode != "local":  # the service is stopped when the run ends, however it ends
             from palletpilot.executor.perception_remote import remote_perception
 
-            service = remote_perception(perception_mode, perception_connect, sim.forks, sim.pallet_type, DEFAULT_MODEL)
+            service = remote_perception(
+                perception_mode,
+                perception_connect,
+                sim.forks,
+                sim.pallet_type,
+                DEFAULT_MODEL,
+                labels=labels_mode(labels),
+            )
             perception = injector.perception(stack.enter_context(service))
         events = None
         if folder is not None:

@@ -23,8 +23,23 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from palletpilot.geometry.fileio import output_problems
+from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, SIM_TRUTH, LabelsMode
 
 SEED_MAX = 2**64 - 1
+
+
+def add_labels_argument(parser: argparse.ArgumentParser, sim: bool = False) -> None:
+    """`--labels model|geometry|fused` (default fused): which source selects perception's pixels
+    (`perception.labels_mode`); `sim`: also `truth`, the simulator's exact labels in the model mode."""
+    choices = [str(m) for m in LabelsMode] + ([SIM_TRUTH] if sim else [])
+    parser.add_argument(
+        "--labels",
+        choices=choices,
+        default=str(DEFAULT_LABELS_MODE),
+        help="which pixels are the pallet's, the floor's and the forks': depth geometry with the segmentation "
+        "model's hints (fused, the default), depth alone (geometry: no model), the model alone (model)"
+        + (", or the simulator's exact labels as the model's (truth)" if sim else ""),
+    )
 
 
 class Parser(argparse.ArgumentParser):

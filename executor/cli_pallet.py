@@ -24,15 +24,18 @@ import importlib
 import json
 import math
 
+from palletpilot.executor.cli_args import add_labels_argument, number
+from palletpilot.geometry import SE2
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.specs import pallet_type
 
 
-def _with_labels(frame: FrameBundle, where: str) -> FrameBundle:
-    """The frame itself when it has labels, else labelled by the shipped segmentation model."""
-    if frame.labels is not None:
+def _with_labels(frame: FrameBundle, where: str, mode: str) -> FrameBundle:
+    """The frame itself when it has labels (or the mode needs none), else labelled by the shipped segmentation
+    model; `fused` without RGB goes on with geometry alone."""
+    if frame.labels is not None or mode == "geometry" or (mode == "fused" and frame.rgb is None):
         return frame
     try:
         seg = importlib.import_module("palletpilot.perception.segmentation")
@@ -50,6 +53,7 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
     from palletpilot.perception.calibration_io import load_calibration
     from palletpilot.perception.depth_tare import correct_depth, load_tare
     from palletpilot.perception.frames import load_bundle
+    from palletpilot.perception.labels_mode import LabelsMode
     from palletpilot.perception.pallet import PalletNotFound, estimate_pallet, estimator_config
 
     problems: list[str] = []
@@ -60,16 +64,26 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
         vehicle = collect(problems, lambda: load_vehicle(args.vehicle))
         if vehicle is not None:
             mast_range_m = (vehicle.mast.min_height, vehicle.mast.max_height)
-    frame = collect(problems, lambda: load_bundle(args.frame, mast_range_m, need_labels=True))
+    frame = collect(problems, lambda: load_bundle(args.frame, mast_range_m, need_labels=args.labels == "model"))
     calibration = collect(problems, lambda: load_calibration(args.calibration))
     pallet = collect(problems, lambda: pallet_type(args.pallet))
     tare = collect(problems, lambda: load_tare(args.depth_tare)) if args.depth_tare else None
     raise_problems(problems, PerceptionError)
     assert frame is not None and calibration is not None and pallet is not None
 
-    frame = _with_labels(correct_depth(frame, tare), args.frame)
+    frame = _with_labels(correct_depth(frame, tare), args.frame, args.labels)
+    x, y, yaw_deg = args.expected if args.expected is not None else (0.0, 0.0, 0.0)
+    expected = None if args.expected is None else SE2(x, y, math.radians(yaw_deg))
     try:
-        estimate = estimate_pallet(frame, calibration, pallet, config=estimator_config(depth_tared=tare is not None))
+        estimate = estimate_pallet(
+            frame,
+            calibration,
+            pallet,
+            config=estimator_config(depth_tared=tare is not None),
+            expected=expected,
+            labels=LabelsMode(args.labels),
+            support_height_m=args.support_height,
+        )
     except PalletNotFound as exc:  # name the frame in the one-line message
         raise PalletNotFound(exc.reason, exc.detail, where=args.frame) from None
     doc = estimate.to_json()
@@ -98,5 +112,20 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="vehicle file: the frame's fork height must lie within its mast's range (default: any mast's, 0..20 m)",
     )
     p.add_argument("--json", action="store_true", help="print T_forklift_pallet, x_m, y_m, z_m, yaw_deg, spread")
+    add_labels_argument(p)
+    p.add_argument(
+        "--expected",
+        nargs=3,
+        type=number(-50.0, 50.0, "m or deg"),
+        metavar=("X_M", "Y_M", "YAW_DEG"),
+        help="where the pallet should stand (T_forklift_pallet on the floor): only the pallet there, within "
+        "the misplacement envelope, is taken (default: anywhere ahead of the forks)",
+    )
+    p.add_argument(
+        "--support-height",
+        type=number(-1.0, 20.0, "m"),
+        default=0.0,
+        help="height of what the pallet stands on, m above the floor (default 0; a rack's beam height)",
+    )
     p.add_argument("--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`)")
     p.set_defaults(func=cmd_estimate_pallet)

@@ -24,6 +24,7 @@ import threading
 from types import FrameType
 from typing import TYPE_CHECKING
 
+from palletpilot.executor.cli_args import add_labels_argument
 from palletpilot.executor.cli_outcome import EXIT_OK
 from palletpilot.executor.processes import keep_heap_mapped
 from palletpilot.geometry.errors import collect, raise_problems
@@ -108,6 +109,7 @@ def _build(args: argparse.Namespace) -> PerceptionServer:
     from palletpilot.geometry.fileio import bundled_path
     from palletpilot.perception.depth_tare import load_tare
     from palletpilot.perception.errors import PerceptionError
+    from palletpilot.perception.labels_mode import LabelsMode
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.perception.specs import load_forks, pallet_type
 
@@ -124,7 +126,7 @@ def _build(args: argparse.Namespace) -> PerceptionServer:
 
         source = RealSenseSource()
         camera, serial = source, source.serial
-    perception = LocalPerception(forks, pallet, segmenter=segmenter, depth_tare=tare)
+    perception = LocalPerception(forks, pallet, segmenter=segmenter, depth_tare=tare, labels=LabelsMode(args.labels))
     return PerceptionServer(perception, prefix=args.prefix, camera=camera, camera_serial=serial)
 
 
@@ -143,6 +145,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`)")
     s.add_argument("--forks", metavar="FORKS.yaml", help="fork geometry (default: the bundled missions/forks.yaml)")
     s.add_argument("--pallet", default="eur", help="default pallet type: eur, another built-in or a YAML file")
+    add_labels_argument(s)
     s.add_argument(
         "--listen",
         action="append",

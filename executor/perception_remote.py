@@ -63,6 +63,7 @@ from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.clearance import Volume, VolumeCheck
 from palletpilot.perception.errors import CalibrationError, PerceptionError
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, LabelsMode
 from palletpilot.perception.pallet_estimate import NotFoundReason, PalletEstimate, PalletNotFound
 from palletpilot.perception.specs import ForkGeometry, PalletType
 
@@ -218,6 +219,7 @@ class RemotePerception:
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
         pallet: PalletType | None = None,
+        support_height_m: float = 0.0,
         fork_height: float = 0.0,
     ) -> PalletEstimate:
         """The pallet's pose in the forklift and world frames (`PalletNotFound`, with its reason); see
@@ -229,6 +231,7 @@ class RemotePerception:
             if expected_T_world_pallet is None
             else wire.se2_to_json(expected_T_world_pallet),
             "pallet": None if pallet is None else wire.pallet_to_json(pallet),
+            "support_height_m": support_height_m,
         }
         if frame is None:
             params["fork_height"] = fork_height
@@ -368,8 +371,10 @@ class LocalService:
         prefix: str = wire.DEFAULT_PREFIX,
         ready_timeout_s: float = 60.0,
         stop_timeout_s: float = 5.0,
+        labels: LabelsMode = DEFAULT_LABELS_MODE,
     ) -> None:
         self.forks, self.pallet, self.model, self.prefix = forks, pallet, model, prefix
+        self.labels = labels
         self.ready_timeout_s, self.stop_timeout_s = ready_timeout_s, stop_timeout_s
         self.process: subprocess.Popen[bytes] | None = None
         self.endpoint: str | None = None
@@ -388,7 +393,7 @@ class LocalService:
         for _ in range(3):  # another process may take the free port before the service binds it
             endpoint = f"tcp/127.0.0.1:{free_port()}"
             argv = [sys.executable, "-m", "palletpilot.cli", "perception", "serve", "--listen", endpoint]
-            argv += ["--forks", str(forks), "--pallet", str(pallet), "--prefix", self.prefix]
+            argv += ["--forks", str(forks), "--pallet", str(pallet), "--prefix", self.prefix, "--labels", self.labels]
             if self.model is not None:
                 argv += ["--model", str(self.model)]
             problem = self._launch(argv)
@@ -472,15 +477,17 @@ def remote_perception(
     pallet: PalletType,
     model: str | Path | None = None,
     prefix: str = wire.DEFAULT_PREFIX,
+    labels: LabelsMode = DEFAULT_LABELS_MODE,
 ) -> Iterator[RemotePerception]:
     """The client for `run --perception remote` (the service at `connect`) or `serve-local` (a service
     started for the run, stopped on leaving). The service must answer `health` and use the run's forks,
     or `PerceptionError` says why before anything moves. The run's process keeps its heap mapped
-    (`keep_heap_mapped`): every request encodes a frame of megabytes."""
+    (`keep_heap_mapped`): every request encodes a frame of megabytes. A service whose labels mode is not
+    the run's `labels` is refused too (a remote one is started with its own `--labels`)."""
     keep_heap_mapped()
     with contextlib.ExitStack() as stack:
         if mode == "serve-local":
-            service = LocalService(forks, pallet, model, prefix)
+            service = LocalService(forks, pallet, model, prefix, labels=labels)
             stack.callback(service.stop)
             connect = [service.start()]
         elif not connect:
@@ -491,5 +498,11 @@ def remote_perception(
             raise PerceptionError(
                 f"perception service {client.where}: its forks {health.get('forks')} are not the run's "
                 f"{forks.model_dump(mode='json')} (start it with the run's --forks file)"
+            )
+        theirs = health.get("labels", str(LabelsMode.MODEL))  # services from before the option used the model
+        if theirs != labels:
+            raise PerceptionError(
+                f"perception service {client.where}: it selects pixels by '{theirs}' labels, the run by '{labels}' "
+                f"(start it with --labels {labels}, or run with --labels {theirs})"
             )
         yield client

@@ -259,12 +259,16 @@ class PerceptionServer:
         pose = wire.se2_from_json(_param(params, "T_world_forklift", where), f"{where}: T_world_forklift")
         expected = params.get("expected_T_world_pallet")
         pallet = params.get("pallet")
+        support = params.get("support_height_m", 0.0)  # clients from before the field: the floor
+        if isinstance(support, bool) or not isinstance(support, (int, float)) or not -1.0 <= support <= 20.0:
+            raise PerceptionError(f"{where}: support_height_m: expected a number of m in -1..20, got {support!r}")
         estimate = p.estimate_pallet(
             frame,
             calibration,
             pose,
             None if expected is None else wire.se2_from_json(expected, f"{where}: expected_T_world_pallet"),
             None if pallet is None else _pallet(pallet, f"{where}: pallet"),
+            support_height_m=float(support),
         )
         return wire.encode_json(wire.estimate_to_json(estimate))
 
@@ -317,6 +321,7 @@ class PerceptionServer:
                 "last_error": s.last_error,
                 "forks": self.perception.forks.model_dump(mode="json"),
                 "pallet": self.perception.pallet.name,
+                "labels": str(self.perception.labels),
             }
         }
 

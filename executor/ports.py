@@ -20,6 +20,7 @@ from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.clearance import Volume, VolumeCheck, check_volume
 from palletpilot.perception.depth_tare import DepthTare, correct_depth
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.geometry_labels import DEFAULT_ENVELOPE, DEFAULT_LABELS_MODE, Envelope, LabelsMode
 from palletpilot.perception.pallet import PalletEstimate, estimate_pallet, estimator_config
 from palletpilot.perception.segmentation import SegmentationService
 from palletpilot.perception.specs import ForkGeometry, PalletType
@@ -116,10 +117,13 @@ class PerceptionService(Protocol):
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
         pallet: PalletType | None = None,
+        support_height_m: float = 0.0,
     ) -> PalletEstimate:
         """The pallet's pose (raises `PalletNotFound`); with `expected_T_world_pallet` (world frame) only
         the pallet instance standing there, within a gate, is taken (`perception.instances`). `pallet`:
-        the type to look for (another type is `PalletNotFound`); None: the service's own default."""
+        the type to look for (another type is `PalletNotFound`); None: the service's own default.
+        `support_height_m`: the height of what the pallet stands on (m above the floor: 0, or a rack's
+        beams), where the geometry looks for it (`perception.geometry_labels`)."""
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
         """Depth points inside an upright box ahead of the forks (forklift frame), and how much of it was seen."""
@@ -134,6 +138,9 @@ class LocalPerception:
 
     `depth_tare`: the camera's measured depth scale error (`perception.depth_tare`), removed from every
     frame before use; none for a camera without one (the simulator's, unless a scenario says otherwise).
+    `labels`: which source selects the pallet's, the floor's and the forks' pixels
+    (`perception.geometry_labels.LabelsMode`; `geometry` never runs the segmenter); `envelope`: how far
+    the pallet may stand from where it is expected (the geometry's search region).
     """
 
     def __init__(
@@ -143,17 +150,21 @@ class LocalPerception:
         method: Method = "model",
         segmenter: SegmentationService | None = None,
         depth_tare: DepthTare | None = None,
+        labels: LabelsMode = DEFAULT_LABELS_MODE,
+        envelope: Envelope = DEFAULT_ENVELOPE,
     ) -> None:
         self.forks = forks
         self.pallet = pallet or PalletType.eur()
-        self.calibrator = Calibrator(forks, method)
+        self.labels = labels
+        self.envelope = envelope
+        self.calibrator = Calibrator(forks, method, labels=labels)
         self.segmenter = segmenter
         self.depth_tare = depth_tare
         self.pallet_config = estimator_config(depth_tared=depth_tare is not None)  # the spread knows the tare
 
     def _labelled(self, frame: FrameBundle) -> FrameBundle:
         frame = correct_depth(frame, self.depth_tare)
-        if frame.labels is not None or self.segmenter is None:
+        if frame.labels is not None or self.segmenter is None or self.labels == LabelsMode.GEOMETRY:
             return frame
         from palletpilot.perception.segmentation import ensure_labels
 
@@ -170,10 +181,11 @@ class LocalPerception:
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
         pallet: PalletType | None = None,
+        support_height_m: float = 0.0,
     ) -> PalletEstimate:
         """Estimate the pallet's pose in the forklift and world frames; with `expected_T_world_pallet`
         (world) only the pallet instance standing there is fitted; `pallet`: the type (default: this
-        service's)."""
+        service's); `support_height_m`: what it stands on (m above the floor)."""
         expected = None if expected_T_world_pallet is None else T_world_forklift.inv() @ expected_T_world_pallet
         return estimate_pallet(
             self._labelled(frame),
@@ -182,6 +194,9 @@ class LocalPerception:
             T_world_forklift=T_world_forklift,
             expected=expected,
             config=self.pallet_config,
+            labels=self.labels,
+            support_height_m=support_height_m,
+            envelope=self.envelope,
         )
 
     def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:

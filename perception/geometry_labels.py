@@ -15,8 +15,9 @@ what the caller already knows:
   points standing a blade's thickness above it in pieces that reach the image's lower border (the blades
   start under the camera); no earlier calibration is needed.
 
-`LabelsMode` says which source selects: `model` (the segmentation labels alone, as before issue 37),
-`geometry` (depth alone; the model is not run), `fused` (the default of every command: geometry selects,
+`LabelsMode` (`perception.labels_mode`, re-exported here) says which source selects: `model` (the
+segmentation labels alone, as before issue 37), `geometry` (depth alone; the model is not run), `fused`
+(the default of every command: geometry selects,
 the model adds what geometry cannot tell, as hints that must be coherent blobs so that a model giving noise
 changes nothing: a person in front of the pallet is left out, a load is cargo, and the model's own pallet
 pixels inside the envelope join the geometry's). `MODES` is the one table of what each mode needs and what
@@ -32,7 +33,6 @@ Public API: `LabelsMode`, `DEFAULT_LABELS_MODE`, `MODES`, `Envelope`, `DEFAULT_E
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
 
@@ -42,6 +42,7 @@ import numpy as np
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.errors import CalibrationError, PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, MODES, LabelsMode
 from palletpilot.perception.pointcloud import check_intrinsics, class_mask
 from palletpilot.perception.specs import ForkGeometry, PalletType
 
@@ -57,36 +58,6 @@ __all__ = [
     "pallet_labels",
     "sources_note",
 ]
-
-
-class LabelsMode(enum.StrEnum):
-    """Which source selects perception's pixels (the pallet's, the floor's, the forks')."""
-
-    MODEL = "model"
-    GEOMETRY = "geometry"
-    FUSED = "fused"
-
-
-DEFAULT_LABELS_MODE = LabelsMode.FUSED
-"""The mode of every command (`run`, `robot`, `agv`, `calibrate`, `estimate-pallet`, the benchmarks)."""
-
-MODES: dict[LabelsMode, tuple[str, str]] = {
-    LabelsMode.MODEL: (
-        "the segmentation model's labels (RGB, or labels in the frame)",
-        "what the model was trained on (the simulator's looks); on real photos it labels a third of a pallet",
-    ),
-    LabelsMode.GEOMETRY: (
-        "depth, the calibration, where the pallet should stand (node, envelope, floor or beam height)",
-        "any look (colour, texture, light): no model is run; a person or a box at the pallet's height in "
-        "the envelope is depth like any other (the entry check and the scanners guard them)",
-    ),
-    LabelsMode.FUSED: (
-        "as geometry, plus RGB for the model's hints",
-        "as geometry, and a model giving noise changes nothing; the model adds persons and loads it sees "
-        "as coherent blobs and its pallet pixels inside the envelope",
-    ),
-}
-"""What each mode needs and what it is robust to."""
 
 
 @dataclass(frozen=True)
@@ -123,7 +94,8 @@ class PalletLabels:
     """The labels the estimator selects pallet pixels with, and how many pixels each source selected.
 
     `geometry_px`: pixels in the height band inside the envelope; `model_px`: the model's pallet pixels
-    inside the envelope (None without model labels).
+    inside the envelope, in coherent blobs (`_blobs`; None without model labels; in the `model` mode all
+    its pallet pixels).
     """
 
     labels: np.ndarray
@@ -220,9 +192,9 @@ def pallet_labels(
     model = frame.labels if mode == LabelsMode.FUSED else None
     if model is None:
         return PalletLabels(labels, mode, geometry_px, None)
-    model_pallet = class_mask(model, _PALLET) & region
+    model_pallet = _blobs(class_mask(model, _PALLET) & region)
     model_px = int(np.count_nonzero(model_pallet))
-    labels[_blobs(model_pallet) & ~band] = SemanticClass.PALLET_EMPTY
+    labels[model_pallet & ~band] = SemanticClass.PALLET_EMPTY
     full = _blobs(model == SemanticClass.PALLET_FULL)
     labels[full & (labels == SemanticClass.PALLET_EMPTY)] = SemanticClass.PALLET_FULL
     for hint in (SemanticClass.PERSON, SemanticClass.CARGO):

@@ -510,10 +510,13 @@ class FaultyPerception:
         T_world_forklift: SE2,
         expected_T_world_pallet: SE2 | None = None,
         pallet: Any = None,
+        support_height_m: float = 0.0,
     ) -> Any:
         """`inner.estimate_pallet(...)` with the active perception faults."""
         self._faulted()
-        return self._inner.estimate_pallet(frame, calibration, T_world_forklift, expected_T_world_pallet, pallet)
+        return self._inner.estimate_pallet(
+            frame, calibration, T_world_forklift, expected_T_world_pallet, pallet, support_height_m=support_height_m
+        )
 
     @property
     def last_good(self) -> Any:

@@ -197,7 +197,13 @@ class FakePerception:
         return "calibration"
 
     def estimate_pallet(
-        self, frame: Any, calibration: Any, T_world_forklift: SE2, expected: Any = None, pallet: Any = None
+        self,
+        frame: Any,
+        calibration: Any,
+        T_world_forklift: SE2,
+        expected: Any = None,
+        pallet: Any = None,
+        support_height_m: float = 0.0,
     ) -> str:
         self.calls += 1
         return "estimate"

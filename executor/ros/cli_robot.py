@@ -31,7 +31,7 @@ import threading
 from types import FrameType
 from typing import TYPE_CHECKING
 
-from palletpilot.executor.cli_args import number, out_file, out_folder, seed
+from palletpilot.executor.cli_args import add_labels_argument, number, out_file, out_folder, seed
 from palletpilot.executor.cli_outcome import EXIT_BAD_INPUT, EXIT_OK, mission_outcome
 from palletpilot.executor.recording_channels import add_foxglove_argument
 from palletpilot.geometry import PalletpilotError
@@ -104,6 +104,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
     require_cyclonedds()
     from palletpilot.executor.controls import CONTROLS, install_signal_handlers
     from palletpilot.executor.ros.robot import run_robot
+    from palletpilot.perception.labels_mode import LabelsMode
 
     install_signal_handlers(CONTROLS, cancel=True)  # SIGINT / SIGTERM: stop the truck, then exit
     if args.perception_connect and args.perception != "remote":
@@ -131,6 +132,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
         on_ready=ready,
         foxglove=args.foxglove,
         foxglove_host=args.foxglove_host,
+        labels=LabelsMode(args.labels),
     )
     report = result.report.parent if result.report is not None else None
     return mission_outcome(result, report, args.json, CONTROLS, "truck")
@@ -162,6 +164,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "--wait", type=number(0.0, 600.0, "s"), default=5.0, help="wait this long for the truck's topics (s)"
     )
     p.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
+    add_labels_argument(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no live progress")
     add_foxglove_argument(p)

@@ -46,6 +46,7 @@ from palletpilot.geometry import OutputError, PalletpilotError, angle_diff
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.calibration_io import Calibration, load_calibration
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, LabelsMode
 from palletpilot.perception.specs import ForkGeometry, load_forks
 from palletpilot.roadmap import Roadmap, load_map, map_vehicle_file
 
@@ -170,8 +171,11 @@ def run_robot(
     on_ready: Callable[[str], None] | None = None,
     foxglove: int | None = None,
     foxglove_host: str = "127.0.0.1",
+    labels: LabelsMode = DEFAULT_LABELS_MODE,
 ) -> RobotRun:
     """Check, connect, refuse or run (module docstring); `RobotError` for every reason not to start.
+
+    `labels`: which source selects perception's pixels (`perception.labels_mode`; fused by default).
 
     The report folder gets `run.mcap` (`executor.recording`); `foxglove`: also serve the run live over
     Foxglove WebSocket on `foxglove_host:foxglove` (a port that cannot be served: `RecordingError`)."""
@@ -206,7 +210,7 @@ def run_robot(
             on_ready(node)
         return _execute(
             inputs, vehicle, camera, node, stack, mission_path, robot_path, report_dir, journal, perception_mode,
-            perception_connect, adapt, progress, controls, settings, (foxglove, foxglove_host),
+            perception_connect, adapt, progress, controls, settings, (foxglove, foxglove_host), labels,
         )  # fmt: skip
 
 
@@ -249,6 +253,7 @@ def _execute(
     controls: Controls | None,
     settings: Settings | None,
     live: tuple[int | None, str] = (None, "127.0.0.1"),
+    labels: LabelsMode = DEFAULT_LABELS_MODE,
 ) -> RobotRun:
     """Build the runner on the connected truck and run the mission; write the report and `run.mcap`."""
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
@@ -259,7 +264,8 @@ def _execute(
     settings.adapt = adapt
     perception: PerceptionService | None = None
     if adapt and perception_mode == "local":
-        local = LocalPerception(inputs.forks, PalletType.eur(), segmenter=OnnxSegmenter(DEFAULT_MODEL))
+        segmenter = None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL)
+        local = LocalPerception(inputs.forks, PalletType.eur(), segmenter=segmenter, labels=labels)
         local.calibrator.last_good = inputs.calibration
         perception = local
     elif adapt:
@@ -271,6 +277,7 @@ def _execute(
             inputs.forks,
             PalletType.eur(),
             DEFAULT_MODEL,
+            labels=labels,
         )
         perception = stack.enter_context(service)
 
@@ -388,7 +395,9 @@ def _execute(
     return RobotRun(success, runner, summary(success, runner.results), report, write_errors)
 
 
-def open_backend(loaded: Any, robot_path: str | Path, wait_s: float = 5.0) -> Any:
+def open_backend(
+    loaded: Any, robot_path: str | Path, wait_s: float = 5.0, labels: LabelsMode = DEFAULT_LABELS_MODE
+) -> Any:
     """The VDA 5050 AGV's vehicle on a real truck (`palletpilot agv --robot robot.yaml`): a
     `executor.vda5050.vehicle.Backend` with `RosVehicle`, the camera, perception in this process and a
     wall clock at the robot file's rate that sends the drive command after every tick.
@@ -454,7 +463,12 @@ def open_backend(loaded: Any, robot_path: str | Path, wait_s: float = 5.0) -> An
 
     return vda.Backend(
         vehicle=vehicle,
-        perception=LocalPerception(forks, PalletType.eur(), segmenter=OnnxSegmenter(DEFAULT_MODEL)),
+        perception=LocalPerception(
+            forks,
+            PalletType.eur(),
+            segmenter=None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL),
+            labels=labels,
+        ),
         grab=grab,
         clock=clock,
         params=params,

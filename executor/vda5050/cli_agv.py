@@ -1,7 +1,7 @@
 """`palletpilot agv`: run as one AGV of a fleet, orders from a VDA 5050 master over MQTT (wired in by `executor.cli`).
 
-`palletpilot agv --config agv.yaml (--sim SCENARIO | --robot robot.yaml) [--labels model|truth] [--seed N]
-[--report DIR] [--journal FILE] [--foxglove [PORT]] [--foxglove-host HOST] [--quiet]` checks the config file
+`palletpilot agv --config agv.yaml (--sim SCENARIO | --robot robot.yaml) [--labels fused|geometry|model|truth]
+[--seed N] [--report DIR] [--journal FILE] [--foxglove [PORT]] [--foxglove-host HOST] [--quiet]` checks the config file
 (and the map, vehicle, TLS files it names) and the scenario first: a problem is one line on stderr and exit 2. Then it
 connects to the broker (retrying with backoff until it gets through), prints one line on stdout,
 `agv ready: <interface>/v2/<manufacturer>/<serial>/ (simulated scenario ...)`, and runs until SIGINT or
@@ -39,7 +39,7 @@ from importlib import metadata
 from pathlib import Path
 from types import FrameType
 
-from palletpilot.executor.cli_args import out_folder, seed
+from palletpilot.executor.cli_args import add_labels_argument, out_folder, seed
 from palletpilot.executor.recording_channels import add_foxglove_argument
 
 FLUSH_S = 5.0
@@ -59,7 +59,8 @@ def cmd_agv(args: argparse.Namespace) -> int:
     from palletpilot.executor.vda5050.agv import Agv
     from palletpilot.executor.vda5050.config import load_config
     from palletpilot.executor.vda5050.persist import JOURNAL_NAME, Persister, agv_meta, open_session
-    from palletpilot.executor.vda5050.vehicle import robot_backend, sim_backend
+    from palletpilot.executor.vda5050.vehicle import BackendError, robot_backend, sim_backend
+    from palletpilot.perception.labels_mode import SIM_TRUTH, LabelsMode
 
     stop = threading.Event()
     agv: Agv | None = None
@@ -81,7 +82,9 @@ def cmd_agv(args: argparse.Namespace) -> int:
         if args.sim:
             backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed)
         else:
-            backend = robot_backend(loaded, args.robot)
+            if args.labels == SIM_TRUTH:
+                raise BackendError("--labels truth: the simulator's labels exist only with --sim")
+            backend = robot_backend(loaded, args.robot, labels=LabelsMode(args.labels))
         try:
             folder.mkdir(parents=True, exist_ok=True)
             recorder = start_recording(folder, args.foxglove, wall=True, host=args.foxglove_host, flush_s=FLUSH_S)
@@ -164,12 +167,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", metavar="SCENARIO", help="drive the simulated warehouse of a scenario in real time")
     where.add_argument("--robot", metavar="ROBOT.yaml", help="drive a real truck (needs the ROS 2 adapter)")
-    p.add_argument(
-        "--labels",
-        choices=("model", "truth"),
-        default="model",
-        help="--sim: perception segments the RGB with the shipped model (default) or takes the simulator's labels",
-    )
+    add_labels_argument(p, sim=True)
     p.add_argument("--seed", type=seed, help="--sim: override the scenario's seed")
     p.add_argument(
         "--report",

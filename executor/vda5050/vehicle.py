@@ -22,7 +22,7 @@ import importlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from palletpilot.control.follower import Follower
 from palletpilot.control.mpc import MpcConfig, MpcFollower
@@ -32,6 +32,7 @@ from palletpilot.executor.ports import LocalPerception, PerceptionService, Vehic
 from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.geometry import PalletpilotError
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, SIM_TRUTH, LabelsMode
 from palletpilot.perception.specs import ForkGeometry
 
 
@@ -95,10 +96,11 @@ def _sha256(path: Path) -> str:
 def sim_backend(
     loaded: Loaded,
     scenario_path: str | Path,
-    labels: Literal["model", "truth"] = "model",
+    labels: str = "fused",
     seed: int | None = None,
 ) -> Backend:
-    """The simulated warehouse of a scenario on the wall clock (its map must be the config's)."""
+    """The simulated warehouse of a scenario on the wall clock (its map must be the config's); `labels` as
+    `run --labels` (`executor.app.Labels`)."""
     from palletpilot.executor.ports import LocalPerception
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.sim.faults import FaultInjector
@@ -125,14 +127,15 @@ def sim_backend(
 
     grab: Callable[[], FrameBundle] = injector.grab
     segmenter = None
-    if labels == "model":
-        segmenter = OnnxSegmenter(DEFAULT_MODEL)
+    mode = LabelsMode.MODEL if labels == SIM_TRUTH else LabelsMode(labels)
+    if labels != SIM_TRUTH:  # the truck's view: no labels from the simulator
+        segmenter = None if mode == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL)
         inner = injector.grab
 
         def grab() -> FrameBundle:
             return dataclasses.replace(inner(), labels=None)
 
-    perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter))
+    perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter, labels=mode))
     follower = MpcFollower(loaded.vehicle, MpcConfig())
     follower.step_fault = injector.step_failure
     return Backend(
@@ -149,8 +152,9 @@ def sim_backend(
     )
 
 
-def robot_backend(loaded: Loaded, robot_path: str | Path) -> Backend:
-    """A real truck through the ROS 2 adapter (`palletpilot.executor.ros`: `open_backend(loaded, robot.yaml)`)."""
+def robot_backend(loaded: Loaded, robot_path: str | Path, labels: LabelsMode = DEFAULT_LABELS_MODE) -> Backend:
+    """A real truck through the ROS 2 adapter (`palletpilot.executor.ros`: `open_backend(loaded, robot.yaml)`);
+    `labels`: which source selects perception's pixels."""
     try:
         ros = importlib.import_module("palletpilot.executor.ros")
     except ImportError as exc:
@@ -164,7 +168,7 @@ def robot_backend(loaded: Loaded, robot_path: str | Path) -> Backend:
             f"--robot {robot_path}: the ROS 2 adapter (palletpilot.executor.ros) has no open_backend(loaded, path) "
             "for the AGV yet; run with --sim SCENARIO"
         )
-    backend = opener(loaded, Path(robot_path))
+    backend = opener(loaded, Path(robot_path), labels=labels)
     if not isinstance(backend, Backend):
         raise BackendError(f"--robot {robot_path}: the ROS 2 adapter did not return a vehicle backend")
     return backend

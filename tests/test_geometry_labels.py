@@ -1,0 +1,172 @@
+"""Labels from depth geometry (issue 37): the pallet, the floor and the forks found without the segmentation
+model, a model giving noise changes nothing in the fused mode, and a reason says which source saw a pallet."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from palletpilot.bench.pallet import FrameSpec, render
+from palletpilot.geometry import SE2, SE3
+from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration import calibrate
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.perception.geometry_labels import (
+    LabelsMode,
+    calibration_labels,
+    pallet_labels,
+    sources_note,
+)
+from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
+from palletpilot.perception.specs import PalletType, load_forks
+from palletpilot.sim.scenario import Scenario
+from palletpilot.testing import assert_checks, assert_failed, assert_succeeded
+
+MISSIONS = bundled_path("missions")
+FORKS = load_forks(MISSIONS / "forks.yaml")
+PALLET = (SemanticClass.PALLET_EMPTY, SemanticClass.PALLET_FULL)
+
+
+def _noise(shape: tuple[int, ...], seed: int = 0) -> np.ndarray:
+    """A segmentation model that gives noise: every pixel a random class."""
+    return np.random.default_rng(seed).integers(0, 10, shape).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def frames() -> dict[str, tuple[FrameBundle, list[FrameBundle], SE2, float]]:
+    """A loaded floor pallet and an empty rack pallet, both misplaced; each with a calibration frame,
+    where the pallet should stand (forklift frame) and its support height."""
+    out = {}
+    for name, node, loaded, height in (("floor", "floor_b2", True, 0.0), ("rack", "rack_a2", False, 1.0)):
+        spec = FrameSpec(node, loaded, dx=0.03, dy=-0.18, dyaw_deg=6.0, ahead=0.9, seed=11)
+        frame, cal = render(spec, calibration_frames=1)
+        out[name] = (frame, cal, SE2(FORKS.tip_x + spec.ahead, 0.0, 0.0), height)
+    return out
+
+
+def _truth(frame: FrameBundle) -> tuple[Calibration, SE3]:
+    return Calibration(SE3.from_matrix(frame.truth["T_forklift_camera_true"]), "true"), SE3.from_matrix(
+        frame.truth["T_forklift_pallet_true"]
+    )
+
+
+@pytest.mark.parametrize("where", ["floor", "rack"])
+def test_geometry_finds_the_pallet_pixels_the_simulator_labels(frames, where):
+    frame, _, expected, height = frames[where]
+    cal, _ = _truth(frame)
+    found = pallet_labels(
+        frame, cal.T_forklift_camera_at(frame.fork_height), PalletType.eur(), LabelsMode.GEOMETRY,
+        expected=expected, support_height_m=height,
+    )  # fmt: skip
+    truth = np.isin(frame.truth["labels_true"], PALLET)
+    mine = np.isin(found.labels, PALLET)
+    assert found.model_px is None and found.geometry_px == mine.sum()
+    assert (mine & truth).sum() >= 0.8 * truth.sum()  # most of the pallet
+    assert (mine & ~truth).sum() <= 0.25 * mine.sum()  # little else (the floor's noise at its foot)
+
+
+@pytest.mark.parametrize("where", ["floor", "rack"])
+def test_geometry_and_fused_estimate_with_a_model_that_gives_noise(frames, where):
+    frame, _, expected, height = frames[where]
+    cal, T_true = _truth(frame)
+    noisy = dataclasses.replace(frame, labels=_noise(frame.depth.shape))
+    with pytest.raises(PalletNotFound):  # the model alone: nothing to go on
+        estimate_pallet(noisy, cal, expected=expected, labels=LabelsMode.MODEL, support_height_m=height)
+    reference = estimate_pallet(frame, cal, expected=expected, labels=LabelsMode.MODEL, support_height_m=height)
+    for mode in (LabelsMode.GEOMETRY, LabelsMode.FUSED):
+        est = estimate_pallet(noisy, cal, expected=expected, labels=mode, support_height_m=height)
+        err = T_true.inv() @ est.T_forklift_pallet
+        assert abs(err.t[1]) < 0.010 and abs(err.t[0]) < 0.020, (mode, err.t)
+        assert abs(math.degrees(err.to_se2().yaw)) < 0.6, mode
+        assert est.extras["labels"] == mode and est.extras["geometry_pixels"] > 1000
+        ref = T_true.inv() @ reference.T_forklift_pallet  # as good as with the simulator's labels
+        assert abs(err.t[1]) < abs(ref.t[1]) + 0.005
+    fused = estimate_pallet(noisy, cal, expected=expected, labels=LabelsMode.FUSED, support_height_m=height)
+    assert fused.extras["model_pixels"] == 0  # noise makes no blob: the model saw nothing
+
+
+def test_a_load_on_the_pallet_is_cargo_by_geometry(frames):
+    frame, _, expected, _ = frames["floor"]
+    cal, _ = _truth(frame)
+    est = estimate_pallet(frame, cal, expected=expected, labels=LabelsMode.GEOMETRY)
+    assert est.extras["deck_pixels"] == 0  # the load hides the deck: no deck yaw from the load's foot
+
+
+def test_a_reason_says_which_source_saw_the_pallet(frames):
+    frame, _, expected, _ = frames["floor"]
+    cal, _ = _truth(frame)
+    T_cf = cal.T_forklift_camera_at(frame.fork_height)
+    # Told the pallet stands on 1 m beams: the geometry sees nothing in that band, the model sees it.
+    wrong = pallet_labels(frame, T_cf, PalletType.eur(), LabelsMode.FUSED, expected=expected, support_height_m=1.0)
+    assert wrong.geometry_px < 150 < (wrong.model_px or 0)
+    assert "only the model sees a pallet" in sources_note(wrong)
+    noisy = dataclasses.replace(frame, labels=_noise(frame.depth.shape))
+    right = pallet_labels(noisy, T_cf, PalletType.eur(), LabelsMode.FUSED, expected=expected)
+    assert "only the geometry sees a pallet" in sources_note(right)
+    with pytest.raises(PalletNotFound, match="geometry: 0 pixels"):
+        estimate_pallet(frame, cal, expected=expected, labels=LabelsMode.GEOMETRY, support_height_m=1.0)
+
+
+def test_calibration_from_geometry_alone(frames):
+    cal_frame = frames["floor"][1][0]
+    T_true = SE3.from_matrix(cal_frame.truth["T_forklift_camera_true"])
+    bare = dataclasses.replace(cal_frame, labels=None, rgb=None)
+    labels = calibration_labels(bare, FORKS, LabelsMode.GEOMETRY)
+    truth_forks = cal_frame.truth["labels_true"] == SemanticClass.FORKS
+    mine = labels == SemanticClass.FORKS
+    assert (mine & truth_forks).sum() >= 0.85 * truth_forks.sum() and (mine & ~truth_forks).sum() < 0.05 * mine.sum()
+    for mode, frame in (
+        (LabelsMode.GEOMETRY, bare),
+        (LabelsMode.FUSED, dataclasses.replace(cal_frame, labels=_noise(labels.shape))),
+    ):
+        result = calibrate([frame], FORKS, labels=mode)
+        err = T_true.inv() @ result.T_forklift_camera
+        assert np.all(np.abs(err.t) < 0.006), (mode, err.t)
+
+
+class NoiseSegmenter:
+    """A segmentation model replaced by noise (the issue's test of geometry first)."""
+
+    def __init__(self, *_: object) -> None:
+        self.calls = 0
+
+    def segment(self, rgb: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        return _noise(rgb.shape[:2], self.calls)
+
+
+def _mission(tmp_path: Path) -> Path:
+    path = tmp_path / "mission.yaml"
+    tasks = [{"type": "pickup", "node": "floor_b2"}]
+    path.write_text(yaml.safe_dump({"name": "noise", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks}))
+    return path
+
+
+def _scenario() -> Scenario:
+    sc = Scenario.model_validate(
+        {
+            "map": "warehouse.yaml",
+            "start": "b1",
+            "seed": 5,
+            "pallets": [{"node": "floor_b2", "dx": 0.10, "dy": -0.22, "dyaw_deg": 7.0, "loaded": True}],
+        }
+    )
+    sc.folder = MISSIONS
+    return sc
+
+
+def test_a_pickup_succeeds_with_the_model_replaced_by_noise(tmp_path, run_mission, monkeypatch):
+    monkeypatch.setattr("palletpilot.executor.app.OnnxSegmenter", NoiseSegmenter)
+    r = run_mission(_mission(tmp_path), _scenario(), labels="fused")
+    assert_succeeded(r)
+    assert_checks(r)
+    assert r.summary["tasks"][0]["attempts"] >= 2  # found misplaced, re-planned, found aligned
+    r = run_mission(_mission(tmp_path), _scenario(), labels="model")
+    assert_failed(r, "calibration_failed")  # the model alone finds no forks in noise: the truck stays stopped
+    assert abs(r.sim.speed) < 1e-3 and not r.sim.pallets[0].carried
