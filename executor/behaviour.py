@@ -18,7 +18,7 @@ from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.jobs import Jobs
 from palletpilot.executor.ports import PerceptionService, VehiclePort
 from palletpilot.geometry import SE2, SE3
-from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.calibration_io import Calibration, MountTolerance
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate
 from palletpilot.perception.specs import ForkGeometry, PalletType
@@ -90,6 +90,11 @@ class Settings:
     fork_clearance: float = 0.025  # fork bottoms above the pallet's underside when entering
     lift_delta: float = 0.08  # lift above the entry height to carry
     calibration_retries: int = 1
+    # A calibration with an untrusted axis (x from fork tips it cannot trust) keeps that axis from the last
+    # trusted calibration of this truck only when its trusted axes agree with that one within these (m, deg;
+    # `perception.calibration_io.mount_moved`); else the Pickup refuses (`CalibrateCamera`).
+    calibration_mount_tolerance_m: float = MountTolerance.translation_m
+    calibration_mount_tolerance_deg: float = MountTolerance.angle_deg
     frames_per_estimate: int = 3  # the pallet stands still: averaging frames (and localization fixes) cuts noise
     # ... and rounds of that many more while the fused yaw 1-sigma is above `estimate_yaw_sigma_deg`, up to
     # `max_frames_per_estimate` frames (`perception.pallet.FramePolicy`): a far loaded face is never judged
@@ -156,6 +161,9 @@ class Context:
     route_to_pre: list[str] = field(default_factory=list)
     attempts: int = 0
     calibration: Calibration | None = None
+    # Run-scoped: the newest calibration whose every axis was measured and trusted, and where it came
+    # from; `CalibrateCamera` keeps untrusted axes from it (never reset between tasks).
+    trusted_calibration: tuple[Calibration, str] | None = None
     estimate: PalletEstimate | None = None
     estimated_pallet: SE3 | None = None  # T_world_pallet of the last fused estimate (the re-plan's input)
     temporary: list[TemporaryNodes] = field(default_factory=list)

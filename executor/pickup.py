@@ -16,6 +16,7 @@ import math
 from typing import Any
 
 from palletpilot.executor.behaviour import Behaviour, Context, TemporaryNodes
+from palletpilot.executor.calibration_trust import LAST_GOOD_SOURCE, note_trusted, trusted_axes_only
 from palletpilot.executor.entry import MIN_SEEN, RECHECK_S, entry_volume_at
 from palletpilot.executor.errors import (
     CALIBRATION_FAILED,
@@ -54,7 +55,13 @@ def _frame_time(ctx: Context, frame: FrameBundle) -> float:
 
 
 class CalibrateCamera(Behaviour):
-    """Calibrate the camera from the forks and the floor; retry once, then fail (the last good stays)."""
+    """Calibrate the camera from the forks and the floor; retry once, then fail (the last good stays).
+
+    An untrusted axis is never used for the entry (`executor.calibration_trust.trusted_axes_only`): a
+    calibration whose fork tips cannot be trusted keeps x from the truck's last trusted calibration when
+    the mount has not moved (event `calibration_axis_kept`), else the task fails with `calibration_failed`
+    at once (event `calibration_refused`; a new frame would not change the cause).
+    """
 
     timeout_s = 20.0
 
@@ -76,6 +83,7 @@ class CalibrateCamera(Behaviour):
             if frame is None:
                 return None
             self.frame, self.frame_s = frame, _frame_time(ctx, frame)
+            note_trusted(ctx, perception.last_good, LAST_GOOD_SOURCE)  # before the new one replaces it
             self.job = ctx.jobs.submit(
                 "calibrate",
                 lambda: perception.calibrate([frame]),
@@ -97,6 +105,7 @@ class CalibrateCamera(Behaviour):
             if len(self.errors) > ctx.settings.calibration_retries:
                 raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {self.errors[-1]}") from None
             return None
+        calibration = trusted_axes_only(ctx, calibration)
         ctx.calibration = calibration
         ctx.record.setdefault("calibrations", []).append(calibration.to_json())
         ctx.log("calibrated", xyz_m=calibration.to_json()["xyz_m"], quality=calibration.quality)

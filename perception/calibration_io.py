@@ -3,7 +3,7 @@
 ```json
 {"T_forklift_camera": [[...4 x 4...]], "xyz_m": [x, y, z], "rpy_deg": [roll, pitch, yaw],
  "tilt_deg": 22.0, "pan_deg": 0.5, "roll_about_optical_deg": -0.3,
- "method": "model", "quality": {...}, "warnings": ["fork tips: ..."]}
+ "method": "model", "quality": {...}, "warnings": ["fork tips: ..."], "untrusted_axes": ["x"]}
 ```
 `T_forklift_camera` is always for lift height 0; at lift height h the camera is at
 `Trans(0, 0, h) @ T_forklift_camera`. `xyz_m` and `rpy_deg` restate it (roll, pitch, yaw of the
@@ -20,12 +20,24 @@ strict UTF-8 JSON of at most `MAX_CALIBRATION_BYTES` (no NaN or Infinity), numbe
 forklift origin (on the floor midway between the forks, at the fork heels: the camera rides on the
 fork carriage, so a translation of kilometres is a broken file); `xyz_m` and `rpy_deg`, when given,
 must agree with it (they only restate it; edit `T_forklift_camera`).
+
+**Trusted axes** (`CalibrationAxis`, `Calibration.untrusted_axes`): the floor alone fixes the camera's
+height z and its roll and pitch (which way is up); the forks fix x (the tips), y and yaw (the blades'
+sides). When the tips cannot be trusted (`quality.tip_trusted` false: fork pixels beyond the fitted tips,
+or tips seen at a grazing angle, `perception.calibration`), x is untrusted: it may be off by a taper's
+length. `untrusted_axes` lists them (`[]`: all trusted). A file without the key (written before it existed)
+loads with the axes its `quality` implies: all trusted, unless `tip_trusted` is false. `keep_axes` takes
+untrusted axes from an earlier trusted calibration of the same mount (`quality.kept_axes` says from where);
+`mount_moved` says whether the trusted axes of two calibrations agree (the Pickup's rule,
+`executor.pickup.CalibrateCamera`).
 """
 
 from __future__ import annotations
 
+import enum
 import math
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping
+from dataclasses import InitVar, dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -52,14 +64,66 @@ def mount_angles(T_forklift_camera: SE3) -> tuple[float, float, float]:
     return -b, -a, c
 
 
+class CalibrationAxis(enum.StrEnum):
+    """One degree of freedom of `T_forklift_camera` (lift height 0), named as the calibration JSON states it.
+
+    `x`, `y`, `z`: the camera's position in the forklift frame (m, `xyz_m`); `roll`, `pitch`, `yaw`: the
+    angles of `rpy_deg` (forklift axes, R = Rz(yaw) Ry(pitch) Rx(roll)). The floor alone fixes the height
+    z, roll and pitch (the floor normal: the mount's tilt and its roll about the optical axis); the forks
+    fix x (the tips at `tip_x`), y (the blades' sides) and yaw (their direction: the mount's pan).
+    """
+
+    X = "x"
+    Y = "y"
+    Z = "z"
+    ROLL = "roll"
+    PITCH = "pitch"
+    YAW = "yaw"
+
+
+FLOOR_AXES = frozenset({CalibrationAxis.Z, CalibrationAxis.ROLL, CalibrationAxis.PITCH})
+"""The axes the floor alone fixes (height, roll, pitch)."""
+FORK_AXES = frozenset({CalibrationAxis.X, CalibrationAxis.Y, CalibrationAxis.YAW})
+"""The axes the forks fix: x by the tips, y and yaw by the blades' sides."""
+TIP_AXES = frozenset({CalibrationAxis.X})
+"""The axes only the fork tips fix: untrusted when the tips are (`quality.tip_trusted` false)."""
+_TRANSLATION = (CalibrationAxis.X, CalibrationAxis.Y, CalibrationAxis.Z)
+_ROTATION = (CalibrationAxis.ROLL, CalibrationAxis.PITCH, CalibrationAxis.YAW)
+
+
+def untrusted_axes_of(quality: Mapping[str, Any]) -> frozenset[CalibrationAxis]:
+    """The axes a calibration's quality figures leave untrusted: `TIP_AXES` when `tip_trusted` is false,
+    less those kept from a trusted calibration (`kept_axes`, `keep_axes`)."""
+    if quality.get("tip_trusted", True) is not False:
+        return frozenset()
+    kept = quality.get("kept_axes") or {}
+    return frozenset(a for a in TIP_AXES if a.value not in kept)
+
+
 @dataclass(frozen=True)
 class Calibration:
-    """`T_forklift_camera` at lift height 0, the method that found it and its quality figures."""
+    """`T_forklift_camera` at lift height 0, the method that found it, its quality figures and untrusted axes.
+
+    `untrusted`: the axes that cannot be trusted (`untrusted_axes`, module docstring); None (the default)
+    takes them from `quality` (`untrusted_axes_of`), so every calibration `calibrate` makes, and one sent
+    over the wire or journalled with its quality, states them.
+    """
 
     T_forklift_camera: SE3
     method: str
     quality: dict[str, Any] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()  # what the operator should know (an untrusted tip, ...): stderr of `calibrate`
+    untrusted: InitVar[Iterable[CalibrationAxis | str] | None] = None
+    untrusted_axes: frozenset[CalibrationAxis] = field(init=False)
+
+    def __post_init__(self, untrusted: Iterable[CalibrationAxis | str] | None) -> None:
+        axes = untrusted_axes_of(self.quality) if untrusted is None else frozenset(map(CalibrationAxis, untrusted))
+        object.__setattr__(self, "untrusted_axes", axes)
+
+    @property
+    def trusted(self) -> bool:
+        """Every axis trusted."""
+        return not self.untrusted_axes
 
     def T_forklift_camera_at(self, lift_height: float) -> SE3:
         """The camera pose at a lift height (m): the camera rides on the carriage."""
@@ -79,7 +143,82 @@ class Calibration:
             "method": self.method,
             "quality": self.quality,
             "warnings": list(self.warnings),
+            "untrusted_axes": sorted(a.value for a in self.untrusted_axes),
         }
+
+
+@dataclass(frozen=True)
+class MountTolerance:
+    """How far two calibrations' trusted axes may differ for the mount to count as unmoved (m, deg).
+
+    Two calibrations of one unmoved mount differ by the calibration's own scatter: in the simulator (30
+    random mounts of tapered blades, each calibrated with the measured forks file at one place and with
+    the nominal one at another, another camera's noise and depth scale) by at most 2.2 mm in z, 1.3 mm in
+    y, 0.05 deg in roll and pitch and 0.11 deg in yaw. A camera knocked or re-mounted moves by more; one
+    that slid along x alone on its bracket cannot be told apart (measure the blades).
+    """
+
+    translation_m: float = 0.005
+    angle_deg: float = 0.3
+
+
+def axis_values(T_forklift_camera: SE3) -> dict[CalibrationAxis, float]:
+    """Each axis' value: x, y, z in m, roll, pitch, yaw in rad (`rpy_deg`'s angles)."""
+    xyz, rpy = T_forklift_camera.to_xyz_rpy()
+    values = dict(zip(_TRANSLATION, map(float, xyz), strict=True))
+    values.update(zip(_ROTATION, map(float, rpy), strict=True))
+    return values
+
+
+def mount_moved(new: Calibration, reference: Calibration, tolerance: MountTolerance) -> list[str]:
+    """One line per axis trusted in both calibrations whose values differ beyond `tolerance` (the mount
+    moved between them); an empty list when they agree."""
+    a, b = axis_values(new.T_forklift_camera), axis_values(reference.T_forklift_camera)
+    problems = []
+    for axis in CalibrationAxis:
+        if axis in new.untrusted_axes or axis in reference.untrusted_axes:
+            continue
+        if axis in _TRANSLATION:
+            off, limit, unit = (a[axis] - b[axis]) * 1e3, tolerance.translation_m * 1e3, "mm"
+        else:
+            off = math.degrees(math.remainder(a[axis] - b[axis], math.tau))
+            limit, unit = tolerance.angle_deg, "deg"
+        if abs(off) > limit:
+            problems.append(f"{axis.value} differs by {off:+.1f} {unit} (tolerance {limit:g} {unit})")
+    return problems
+
+
+def keep_axes(new: Calibration, reference: Calibration, source: str) -> Calibration:
+    """`new` with its untrusted axes taken from `reference` (trusted there), all axes then trusted.
+
+    The rest of `new` stands as measured; `quality.kept_axes` records, per axis kept, the value used,
+    the value `new` measured and `source` (where `reference` came from). Whether the mount is the same
+    is the caller's question (`mount_moved`). Raises `PerceptionError` when `reference` does not trust
+    an axis to keep.
+    """
+    axes = sorted(new.untrusted_axes)
+    doubtful = [a.value for a in axes if a in reference.untrusted_axes]
+    if doubtful:
+        raise PerceptionError(f"the reference calibration ({source}) does not trust {', '.join(doubtful)} either")
+    ours, theirs = axis_values(new.T_forklift_camera), axis_values(reference.T_forklift_camera)
+    values = {**ours, **{a: theirs[a] for a in axes}}
+    xyz = [values[a] for a in _TRANSLATION]
+    if any(a in _ROTATION for a in axes):
+        T = SE3.from_xyz_rpy(xyz, [values[a] for a in _ROTATION])
+    else:
+        T = SE3(new.T_forklift_camera.rotation, xyz)
+    unit = {a: ("m" if a in _TRANSLATION else "deg") for a in CalibrationAxis}
+    scale = {a: (1.0 if a in _TRANSLATION else math.degrees(1.0)) for a in CalibrationAxis}
+    kept = {
+        a.value: {
+            "source": source,
+            f"value_{unit[a]}": round(theirs[a] * scale[a], 6),
+            f"measured_{unit[a]}": round(ours[a] * scale[a], 6),
+        }
+        for a in axes
+    }
+    quality = {**new.quality, "kept_axes": {**(new.quality.get("kept_axes") or {}), **kept}}
+    return Calibration(T, new.method, quality, new.warnings, untrusted=frozenset())
 
 
 MAX_CALIBRATION_BYTES = 2**20
@@ -121,6 +260,11 @@ class CalibrationFile(FileModel):
         default_factory=list, max_length=50, description="the calibration's warnings (informative)"
     )
     pickup_view: dict[str, Any] | None = Field(None, description="the mount check of `calibrate` (informative)")
+    untrusted_axes: list[CalibrationAxis] | None = Field(
+        None,
+        max_length=len(CalibrationAxis),
+        description="axes that cannot be trusted (x, y, z, roll, pitch, yaw); absent: as `quality` implies",
+    )
 
     @field_validator("T_forklift_camera")
     @classmethod
@@ -198,4 +342,5 @@ def load_calibration(path: str | Path) -> Calibration:
         T = SE3.from_matrix(np.array(model.T_forklift_camera, dtype=float), atol=ROTATION_TOLERANCE)
     except GeometryError as exc:  # the model has checked it; kept as a last guard
         raise PerceptionError(f"{path}: T_forklift_camera: {exc}") from None
-    return Calibration(T, model.method, dict(model.quality), tuple(model.warnings))
+    untrusted = None if model.untrusted_axes is None else frozenset(model.untrusted_axes)
+    return Calibration(T, model.method, dict(model.quality), tuple(model.warnings), untrusted)
