@@ -36,6 +36,7 @@ weak tip features, height deviations, an assumed zero roll):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -65,6 +66,7 @@ from palletpilot.perception.calibration_paper import paper_fit
 from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.geometry_labels import LabelsMode, calibration_labels
 from palletpilot.perception.specs import ForkGeometry
 
 Method = Literal["model", "paper"]
@@ -395,11 +397,15 @@ def calibrate(
     method: Method = "model",
     limits: Limits = LIMITS,
     names: Sequence[str] | None = None,
+    labels: LabelsMode = LabelsMode.MODEL,
 ) -> Calibration:
-    """`T_forklift_camera` (lift height 0) from labelled RGB-D frames of the forks and the floor.
+    """`T_forklift_camera` (lift height 0) from RGB-D frames of the forks and the floor.
 
     `method` is `model` (default; several frames are fitted together) or `paper` (uses the first
-    frame only, as the paper does). Raises `CalibrationError` naming the frame and the reason.
+    frame only, as the paper does). `labels` selects the floor and fork pixels
+    (`perception.geometry_labels.calibration_labels`): the frames' own labels (`model`, the default
+    here), depth alone (`geometry`) or depth with the model's hints (`fused`, the commands' default).
+    Raises `CalibrationError` naming the frame and the reason.
     """
     if method not in METHODS:
         raise CalibrationError(f"unknown calibration method '{method}' (known: {', '.join(METHODS)})")
@@ -408,6 +414,11 @@ def calibrate(
     names = list(names) if names is not None else [f"frame {i}" for i in range(len(frames))]
     t0 = time.perf_counter()
     frames = [undistort_bundle(f) for f in frames]  # an ideal pinhole image: every ray from K alone
+    if labels != LabelsMode.MODEL:
+        frames = [
+            dataclasses.replace(f, labels=calibration_labels(f, forks, labels, n))
+            for f, n in zip(frames, names, strict=True)
+        ]
     data = [_frame_data(f, n, limits) for f, n in zip(frames, names, strict=True)]
     where = names[0] if len(names) == 1 else f"{len(names)} frames"
     warnings: list[str] = []
@@ -427,13 +438,20 @@ def calibrate(
 class Calibrator:
     """Calibrates on demand and keeps the last good calibration when a new one fails."""
 
-    def __init__(self, forks: ForkGeometry, method: Method = "model", initial: Calibration | None = None) -> None:
+    def __init__(
+        self,
+        forks: ForkGeometry,
+        method: Method = "model",
+        initial: Calibration | None = None,
+        labels: LabelsMode = LabelsMode.MODEL,
+    ) -> None:
         self.forks = forks
         self.method = method
+        self.labels = labels
         self.last_good: Calibration | None = initial
 
     def calibrate(self, frames: Sequence[FrameBundle]) -> Calibration:
         """A new calibration; on `CalibrationError` the last good one stays in `last_good` and the error is raised."""
-        result = calibrate(frames, self.forks, self.method)
+        result = calibrate(frames, self.forks, self.method, labels=self.labels)
         self.last_good = result
         return result
