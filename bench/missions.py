@@ -5,11 +5,12 @@ misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal (in a rack at mos
 `RACK_DEEPER_MAX_M`) and +-10 deg, D435 noise with label
 noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5) with a random per-run perturbation,
 localization noise; the forklift starts at the aisle node before the pallet's pre-pallet node and runs
-a single pickup. The same scenarios are run in each mode (`--modes`): `adaptive` (the adaptive Pickup,
-perception segmenting the simulator's RGB with the shipped ONNX model, as on a truck), `adaptive_truth`
-(the same with the simulator's labels, label noise on: what the geometry alone achieves) and
-`no_adapt` (the paper's original Pickup: no camera, only the proximity safety check). Success: the
-pallet is on the forks and nothing collided.
+a single pickup. The same scenarios are run in each mode (`--modes`): `adaptive` (the adaptive Pickup as
+on a truck: perception selects its pixels by each of `--labels`: `fused`, the default, depth geometry
+with the shipped ONNX model's hints on the simulator's RGB; `geometry`, depth alone; `model`, the ONNX
+model alone; one row each, `adaptive` for fused alone, else `adaptive:LABELS`), `adaptive_truth` (the
+model mode fed the simulator's labels, label noise on) and `no_adapt` (the paper's original Pickup: no
+camera, only the proximity safety check). Success: the pallet is on the forks and nothing collided.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ if TYPE_CHECKING:
 
 MISSIONS = bundled_path("missions")
 MODES = ("adaptive", "adaptive_truth", "no_adapt")
+LABELS = ("fused", "geometry", "model")
+"""`--labels` of the adaptive mode (`perception.labels_mode`)."""
 RACK_DEEPER_MAX_M = 0.13
 """A rack pallet stands at most this much deeper than its node: further, the mast would meet the rack
 beam before the fork tips reach the back blocks (`Settings.rack_overrun` + the far tolerance), and the
@@ -46,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes")
     parser.add_argument(
         "--modes", type=names(MODES), default=list(MODES), help="comma-separated: adaptive, adaptive_truth, no_adapt"
+    )
+    parser.add_argument(
+        "--labels", type=names(LABELS), default=["fused"], help="the adaptive mode's labels: fused, geometry, model"
     )
 
 
@@ -120,6 +126,7 @@ def _one(job: tuple[dict, str]) -> dict:
 
     spec, mode = job
     adapt = mode != "no_adapt"
+    labels = "truth" if mode == "adaptive_truth" else mode.partition(":")[2] or "fused"
     sc = Scenario.model_validate(spec["scenario"])
     sc.folder = MISSIONS
     with tempfile.TemporaryDirectory() as tmp:
@@ -130,7 +137,7 @@ def _one(job: tuple[dict, str]) -> dict:
             )
         )
         t0 = time.perf_counter()
-        run = run_simulated(mission, scenario=sc, adapt=adapt, labels="truth" if mode == "adaptive_truth" else "model")
+        run = run_simulated(mission, scenario=sc, adapt=adapt, labels=labels)  # type: ignore[arg-type]
         wall = time.perf_counter() - t0
     task = run.runner.results[0]
     lifted = bool(run.sim.pallets and run.sim.pallets[0].carried)
@@ -148,10 +155,17 @@ def _one(job: tuple[dict, str]) -> dict:
     }
 
 
+def _rows(mode: str, labels: list[str]) -> list[str]:
+    """The result rows of a mode: one per labels kind for the adaptive mode (`adaptive` for fused alone)."""
+    if mode != "adaptive":
+        return [mode]
+    return ["adaptive"] if labels == ["fused"] else [f"adaptive:{label}" for label in labels]
+
+
 def run(args: argparse.Namespace) -> dict:
     """Run every scenario in each mode and return the figures."""
     specs = _scenarios(args.runs, args.seed)
-    modes = list(args.modes)
+    modes = [m for mode in args.modes for m in _rows(mode, list(args.labels))]
     jobs = [(s, m) for m in modes for s in specs]
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:
