@@ -25,8 +25,9 @@ must agree with it (they only restate it; edit `T_forklift_camera`).
 height z and its roll and pitch (which way is up); the forks fix x (the tips), y and yaw (the blades'
 sides). When the tips cannot be trusted (`quality.tip_trusted` false: fork pixels beyond the fitted tips,
 or tips seen at a grazing angle, `perception.calibration`), x is untrusted: it may be off by a taper's
-length. `untrusted_axes` lists them (`[]`: all trusted). A file without the key (written before it existed)
-loads with the axes its `quality` implies: all trusted, unless `tip_trusted` is false. `keep_axes` takes
+length; the `paper` method never checks its tips, so its x is never trusted. `untrusted_axes` lists them
+(`[]`: all trusted). A file without the key (written before it existed) loads with the axes its method and
+`quality` imply: all trusted, unless `tip_trusted` is false or the method is `paper`. `keep_axes` takes
 untrusted axes from an earlier trusted calibration of the same mount (`quality.kept_axes` says from where);
 `mount_moved` says whether the trusted axes of two calibrations agree (the Pickup's rule,
 `executor.pickup.CalibrateCamera`).
@@ -91,10 +92,12 @@ _TRANSLATION = (CalibrationAxis.X, CalibrationAxis.Y, CalibrationAxis.Z)
 _ROTATION = (CalibrationAxis.ROLL, CalibrationAxis.PITCH, CalibrationAxis.YAW)
 
 
-def untrusted_axes_of(quality: Mapping[str, Any]) -> frozenset[CalibrationAxis]:
-    """The axes a calibration's quality figures leave untrusted: `TIP_AXES` when `tip_trusted` is false,
-    less those kept from a trusted calibration (`kept_axes`, `keep_axes`)."""
-    if quality.get("tip_trusted", True) is not False:
+def untrusted_axes_of(quality: Mapping[str, Any], method: str = "model") -> frozenset[CalibrationAxis]:
+    """The axes a calibration's method and quality figures leave untrusted: `TIP_AXES` when `tip_trusted` is
+    false, or for the `paper` method (its forward position comes from the farthest fork points, unchecked:
+    a 20-30 mm bias on box blades, 90-145 mm on tapered ones in `bench calibration`), less those kept from a
+    trusted calibration (`kept_axes`, `keep_axes`)."""
+    if quality.get("tip_trusted", True) is not False and method != "paper":
         return frozenset()
     kept = quality.get("kept_axes") or {}
     return frozenset(a for a in TIP_AXES if a.value not in kept)
@@ -105,7 +108,7 @@ class Calibration:
     """`T_forklift_camera` at lift height 0, the method that found it, its quality figures and untrusted axes.
 
     `untrusted`: the axes that cannot be trusted (`untrusted_axes`, module docstring); None (the default)
-    takes them from `quality` (`untrusted_axes_of`), so every calibration `calibrate` makes, and one sent
+    takes them from the method and `quality` (`untrusted_axes_of`), so every calibration `calibrate` makes, and one sent
     over the wire or journalled with its quality, states them.
     """
 
@@ -117,7 +120,10 @@ class Calibration:
     untrusted_axes: frozenset[CalibrationAxis] = field(init=False)
 
     def __post_init__(self, untrusted: Iterable[CalibrationAxis | str] | None) -> None:
-        axes = untrusted_axes_of(self.quality) if untrusted is None else frozenset(map(CalibrationAxis, untrusted))
+        if untrusted is None:
+            axes = untrusted_axes_of(self.quality, self.method)
+        else:
+            axes = frozenset(map(CalibrationAxis, untrusted))
         object.__setattr__(self, "untrusted_axes", axes)
 
     @property

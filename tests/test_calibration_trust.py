@@ -81,6 +81,7 @@ def test_untrusted_tips_make_x_untrusted_and_the_json_keeps_it(tmp_path):
     cal = Calibration(pose((0.0, 0.0, 0.5), LEVEL), "model", {"tip_trusted": False}, ("fork tips cannot ...",))
     assert cal.untrusted_axes == {X} and not cal.trusted
     assert Calibration(cal.T_forklift_camera, "model", {"tip_trusted": True}).trusted
+    assert Calibration(cal.T_forklift_camera, "paper", {}).untrusted_axes == {X}  # it never checks the tips
     doc = cal.to_json()
     assert doc["untrusted_axes"] == ["x"]
     assert load_calibration(save_calibration(tmp_path / "cal.json", cal)).untrusted_axes == {X}
@@ -233,6 +234,14 @@ def test_the_pickup_keeps_x_from_a_trusted_calibration_of_the_unmoved_mount(fram
     assert ctx.record["calibration_axis_kept"] == kept
     assert ctx.record["calibrations"][-1]["untrusted_axes"] == []
     assert ctx.trusted_calibration == (trusted, source)  # a combined calibration never becomes the reference
+
+
+def test_a_paper_calibration_is_no_reference_for_x(frame_and_truth):
+    frame, truth = frame_and_truth
+    paper = Calibration(truth, "paper", {})  # e.g. `calibrate --method paper --out cal.json` loaded at start
+    ctx = context(frame, FakePerception(untrusted_like(truth), last_good=paper))
+    with pytest.raises(TaskFailed, match="no earlier trusted calibration"):
+        calibrate_in_pickup(ctx)
 
 
 def test_the_pickup_refuses_when_the_mount_moved_since_the_trusted_calibration(frame_and_truth):
