@@ -21,7 +21,10 @@ be 50-150 mm off, and the forks would stop that much short of or past where the 
 A camera that slid along x alone, every other axis unchanged, cannot be told apart from an unmoved one:
 measure the blades (`palletpilot forks measure`) so the tips are trusted.
 
-Public API: `trusted_axes_only`, `note_trusted`, `LAST_GOOD_SOURCE`.
+Checks outside the Pickup's calibration (a Delivery's slot check) take `calibration_for_checks`: never
+a calibration with an untrusted axis either.
+
+Public API: `trusted_axes_only`, `calibration_for_checks`, `note_trusted`, `LAST_GOOD_SOURCE`.
 """
 
 from __future__ import annotations
@@ -83,3 +86,25 @@ def _refuse(ctx: Context, calibration: Calibration, axes: list[str], why: str, s
         f"calibration not trusted in {', '.join(axes)}, so the forks do not enter with it: {why}"
         f"{f' ({source})' if source else ''}. The calibration says: {said}",
     )
+
+
+def calibration_for_checks(ctx: Context) -> Calibration | None:
+    """The calibration a camera check may use when the task made none (`ctx.calibration` is None, as in a
+    Delivery): the perception service's last good one when every axis is trusted; when it has untrusted
+    axes, those kept from the truck's trusted calibration if the mount has not moved (`trusted_axes_only`'s
+    rule, nothing logged); the trusted calibration held when the service has none; else None (no camera
+    check: the caller relies on its other sensors)."""
+    if ctx.calibration is not None:
+        return ctx.calibration
+    last = ctx.perception.last_good if ctx.perception is not None else None
+    if last is not None and not last.untrusted_axes:
+        return last
+    held = ctx.trusted_calibration
+    if held is None:
+        return None
+    if last is None:
+        return held[0]
+    st = ctx.settings
+    if mount_moved(last, held[0], MountTolerance(st.calibration_mount_tolerance_m, st.calibration_mount_tolerance_deg)):
+        return None
+    return keep_axes(last, held[0], held[1])

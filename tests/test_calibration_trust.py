@@ -19,7 +19,7 @@ import yaml
 
 from palletpilot.executor.app import run_simulated
 from palletpilot.executor.behaviour import Settings
-from palletpilot.executor.calibration_trust import LAST_GOOD_SOURCE
+from palletpilot.executor.calibration_trust import LAST_GOOD_SOURCE, calibration_for_checks
 from palletpilot.executor.errors import CALIBRATION_FAILED, TaskFailed
 from palletpilot.executor.jobs import Jobs
 from palletpilot.executor.pickup import CalibrateCamera
@@ -254,6 +254,24 @@ def test_the_pickup_refuses_when_the_mount_moved_since_the_trusted_calibration(f
     assert info.value.reason == CALIBRATION_FAILED and "the mount has moved" in str(info.value)
     assert "pitch differs by -0.5 deg (tolerance 0.3 deg)" in str(info.value)
     assert ctx.record["calibration_refused"]["source"] == LAST_GOOD_SOURCE
+
+
+def test_checks_outside_the_pickup_never_take_an_untrusted_axis_either(frame_and_truth):
+    frame, truth = frame_and_truth
+    trusted = Calibration(truth, "model", {"tip_trusted": True})
+    untrusted = untrusted_like(truth)
+    knocked = untrusted_like(pose(truth.t, np.degrees(truth.to_xyz_rpy()[1]) + np.array([0.0, 0.5, 0.0])))
+    ctx = context(frame, FakePerception(last_good=untrusted))
+    assert calibration_for_checks(ctx) is None  # nothing trusted: no camera check
+    ctx.trusted_calibration = (trusted, "commissioning")
+    kept = calibration_for_checks(ctx)
+    assert kept is not None and kept.trusted and kept.T_forklift_camera.t == pytest.approx(truth.t)
+    ctx.perception.last_good = knocked
+    assert calibration_for_checks(ctx) is None  # the mount moved since
+    ctx.perception.last_good = trusted
+    assert calibration_for_checks(ctx) is trusted
+    ctx.calibration = kept
+    assert calibration_for_checks(ctx) is kept  # the task's own
 
 
 # -- a whole simulated Pickup: the real calibration, tapered blades, the nominal forks file -----------
