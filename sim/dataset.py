@@ -47,6 +47,14 @@ walls, racks, pallets, loads, boxes, clothes) any hue at saturation 0.3..1 with 
 textures; light from low (elevation 8..20 deg), exposure x0.3..0.5 or x1.7..2.5 and a strong colour
 cast. Its own generator is seeded with `(seed, index, 2)`.
 
+With `realism=True` as well (it implies `randomise`) each frame also gets what real pallets and real
+cameras show and the renders lack (`sim.dataset_realism`, its own generator seeded with
+`(seed, index, 3)`, so the frame's scene, colours and light stay those of the randomised frame): every
+board and block its own tone, replaced and weathered boards, pressed-chip blocks, dirt towards the
+floor; in the image wear blotches on the pallet, glare, auto-exposure with a soft shoulder and lens
+distortion (labels and depth remapped with the RGB, K zoomed, the coefficients in the truth as
+`lens_distortion_true`).
+
 Photometric effects that need no re-render (blur, motion blur, colour noise, gamma, JPEG, vignetting)
 are drawn per training step by `perception.train_segmentation.augment`.
 
@@ -73,6 +81,7 @@ from palletpilot.perception.specs import ForkGeometry, PalletType, load_forks
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import NodeType, load_map
 from palletpilot.sim.camera import Lighting, RaycastRenderer, d435_color_intrinsics
+from palletpilot.sim.dataset_realism import camera_effects, wear_pallet
 from palletpilot.sim.scenario import CameraMount, Scenario, SimError
 from palletpilot.sim.simulator import Simulator
 from palletpilot.sim.world import LabeledMesh, Texture
@@ -266,15 +275,19 @@ def render_frame(
     mounts: str = "all",
     randomise: bool = False,
     novel: bool = False,
+    realism: bool = False,
 ) -> FrameBundle:
     """Frame `index` of the dataset with `seed`: a random scenario rendered with the `Simulator` (640x480).
 
-    Deterministic for `(seed, index, mounts, randomise, novel)`; `randomise`: domain randomisation,
-    `novel`: with looks the randomisation never draws (module docstring). The bundle carries RGB,
+    Deterministic for `(seed, index, mounts, randomise, novel, realism)`; `randomise`: domain
+    randomisation, `novel`: with looks the randomisation never draws, `realism` (implies `randomise`):
+    with worn pallets and a real camera's effects on top (module docstring). The bundle carries RGB,
     depth (m), exact labels, the fork height (m) and the simulator's truth keys.
     """
     rng = np.random.default_rng([int(seed), int(index)])
+    randomise = randomise or realism
     style = np.random.default_rng([int(seed), int(index), 2 if novel else 1]) if randomise or novel else None
+    real = np.random.default_rng([int(seed), int(index), 3]) if realism else None
     for _attempt in range(_MAX_DRAWS):
         sc, pose, fork_height = random_scenario(rng, missions_dir, mounts, style)
         try:
@@ -285,11 +298,11 @@ def render_frame(
     else:
         raise SimError(f"dataset frame {index} (seed {seed}): no valid scenario in {_MAX_DRAWS} draws")
     if style is not None:
-        randomise_appearance(sim, style, novel)
+        randomise_appearance(sim, style, novel, real)
     sim.forklift.state.pose = pose  # teleport: a dataset frame needs no driving
     sim.forklift.state.fork_height = fork_height
     sim.forklift.fork_height_cmd = fork_height
-    return sim.grab()
+    return sim.grab() if real is None else camera_effects(sim.grab(), real)
 
 
 def iter_frames(
@@ -300,10 +313,11 @@ def iter_frames(
     mounts: str = "all",
     randomise: bool = False,
     novel: bool = False,
+    realism: bool = False,
 ) -> Iterator[FrameBundle]:
     """Frames `start .. start + n - 1` of the dataset with `seed` (see `render_frame`)."""
     for i in range(start, start + n):
-        yield render_frame(i, seed, missions_dir, mounts, randomise, novel)
+        yield render_frame(i, seed, missions_dir, mounts, randomise, novel, realism)
 
 
 def generate_dataset(
@@ -315,6 +329,7 @@ def generate_dataset(
     mounts: str = "all",
     randomise: bool = False,
     novel: bool = False,
+    realism: bool = False,
 ) -> list[Path]:
     """Render frames `start .. start + n - 1` for `seed` and save them as `out_dir/frame_%05d.npz`.
 
@@ -323,7 +338,8 @@ def generate_dataset(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, bundle in enumerate(iter_frames(n, seed, start, missions_dir, mounts, randomise, novel), start=start):
+    frames = iter_frames(n, seed, start, missions_dir, mounts, randomise, novel, realism)
+    for i, bundle in enumerate(frames, start=start):
         paths.append(save_bundle(out / f"frame_{i:05d}.npz", bundle))
     return paths
 
@@ -539,11 +555,14 @@ class _LitRenderer(RaycastRenderer):
         return super().render(*args, **kwargs)
 
 
-def randomise_appearance(sim: Simulator, style: np.random.Generator, novel: bool = False) -> None:
+def randomise_appearance(
+    sim: Simulator, style: np.random.Generator, novel: bool = False, real: np.random.Generator | None = None
+) -> None:
     """Recolour the built world, pallets, loads and forks of `sim` and give its renderer a random light.
 
     Works on the simulator's meshes after it is built (the world's shape and labels are untouched);
-    `novel`: with looks the standard randomisation never draws (module docstring).
+    `novel`: with looks the standard randomisation never draws (module docstring); `real`: each pallet
+    then also worn (`sim.dataset_realism.wear_pallet`) with draws from this generator.
     """
     world = _styled_world(sim._fixed_mesh, style, novel)
     pallets = [
@@ -551,6 +570,9 @@ def randomise_appearance(sim: Simulator, style: np.random.Generator, novel: bool
         for p in sim.pallets
         if not p.carried
     ]
+    if real is not None:
+        plastic = [p.type.material == "plastic" for p in sim.pallets if not p.carried]
+        pallets = [wear_pallet(mesh, is_plastic, real) for mesh, is_plastic in zip(pallets, plastic, strict=True)]
     forks = _copy(sim._forks_local)
     forks.albedo[:] = np.clip(forks.albedo * style.uniform(0.6, 2.5), 0.0, 1.0)
     sim._forks_local = forks

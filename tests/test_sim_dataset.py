@@ -132,3 +132,104 @@ def test_segment_dataset_command_renders_novel_looks_and_refuses_unknown_ones(tm
         main(["segment", "dataset", str(tmp_path / "x"), "--frames", "1", "--randomise", "strange"])
     assert exc.value.code == 2
     assert "invalid choice: 'strange'" in capsys.readouterr().err
+
+
+def test_realism_frames_are_valid_seeded_deterministic_and_keep_the_scene(tmp_path):
+    from palletpilot.perception.frames import save_bundle
+
+    for index in (3, 4):
+        a = render_frame(index, seed=5, realism=True, mounts="pickup")
+        b = render_frame(index, seed=5, realism=True, mounts="pickup")
+        for key in ("rgb", "labels", "depth", "K"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key))  # a function of (seed, index)
+        assert a.truth.keys() == b.truth.keys()
+        again = load_bundle(save_bundle(tmp_path / f"{index}.npz", a))  # a valid bundle, written and read back
+        np.testing.assert_array_equal(again.rgb, a.rgb)
+        randomised = render_frame(index, seed=5, randomise=True, mounts="pickup")
+        assert a.rgb is not None and randomised.rgb is not None
+        assert np.abs(a.rgb.astype(int) - randomised.rgb.astype(int)).mean() > 2.0  # another look ...
+        if "lens_distortion_true" not in a.truth:  # ... of the same scene (its own generator)
+            np.testing.assert_array_equal(a.labels, randomised.labels)
+            np.testing.assert_array_equal(a.K, randomised.K)
+        assert {7, 8} & set(np.unique(a.labels).tolist())  # a pallet in view (Pickup mounts)
+
+
+def _synthetic_bundle():
+    from palletpilot.perception.frames import FrameBundle
+    from palletpilot.sim.camera import d435_color_intrinsics
+
+    rng = np.random.default_rng(0)
+    labels = np.zeros((480, 640), np.uint8)
+    labels[200:260, 250:400] = SemanticClass.PALLET_EMPTY
+    labels[:100] = SemanticClass.VERTICAL
+    depth = np.full((480, 640), 2.0, np.float32)
+    rgb = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    return FrameBundle(depth=depth, K=d435_color_intrinsics(640, 480), labels=labels, rgb=rgb)
+
+
+def test_camera_effects_are_seeded_and_keep_labels_depth_and_image_aligned():
+    from palletpilot.sim.dataset_realism import camera_effects
+
+    bundle = _synthetic_bundle()
+    distorted = 0
+    for s in range(12):
+        a = camera_effects(bundle, np.random.default_rng(s))
+        b = camera_effects(bundle, np.random.default_rng(s))
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        assert a.rgb is not None and a.rgb.shape == (480, 640, 3) and a.labels is not None
+        assert set(np.unique(a.labels).tolist()) <= {0, 1, 7}  # nearest-neighbour labels: no new classes
+        assert np.all(a.depth == 2.0)
+        if "lens_distortion_true" in a.truth:
+            distorted += 1
+            k1 = a.truth["lens_distortion_true"][0]
+            assert -0.3 <= k1 <= 0.05 and a.K[0, 0] >= bundle.K[0, 0]  # zoomed in, never out
+            assert a.labels[230, 325] == SemanticClass.PALLET_EMPTY  # near the principal point: in place
+        else:
+            np.testing.assert_array_equal(a.labels, bundle.labels)
+    assert 2 <= distorted <= 10
+
+
+def test_distortion_maps_invert_opencv_projection():
+    import cv2
+
+    from palletpilot.sim.camera import d435_color_intrinsics
+    from palletpilot.sim.dataset_realism import distortion_maps
+
+    K = d435_color_intrinsics(640, 480)
+    dist = np.array([-0.28, 0.06, 0.001, -0.0015, 0.0])
+    map_x, map_y, K_out = distortion_maps(K, (480, 640), dist)
+    assert K_out[0, 0] > K[0, 0] and K_out[0, 2] == K[0, 2]
+    assert 0 <= map_x.min() and map_x.max() <= 639 and 0 <= map_y.min() and map_y.max() <= 479  # no empty border
+    v, u = np.mgrid[0:480:40, 0:640:40]
+    rays = np.stack([(map_x[v, u] - K[0, 2]) / K[0, 0], (map_y[v, u] - K[1, 2]) / K[1, 1], np.ones(u.shape)], -1)
+    seen, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K_out, dist)
+    np.testing.assert_allclose(seen.reshape(-1, 2), np.stack([u.ravel(), v.ravel()], 1), atol=0.05)
+
+
+def test_worn_pallets_change_colours_only_and_chip_only_blocks():
+    from palletpilot.geometry import SE2
+    from palletpilot.sim.dataset_realism import wear_pallet
+    from palletpilot.sim.world import Texture, pallet_mesh
+
+    mesh = pallet_mesh(SE2(1.0, 2.0, 0.3), cargo_size=(1.0, 0.8, 0.6))
+    pallet = mesh.classes == SemanticClass.PALLET_FULL
+    chipped = 0
+    for s in range(10):
+        worn = wear_pallet(mesh, False, np.random.default_rng(s))
+        again = wear_pallet(mesh, False, np.random.default_rng(s))
+        np.testing.assert_array_equal(worn.albedo, again.albedo)
+        np.testing.assert_array_equal(worn.vertices, mesh.vertices)
+        np.testing.assert_array_equal(worn.classes, mesh.classes)
+        np.testing.assert_array_equal(worn.albedo[~pallet], mesh.albedo[~pallet])  # the load untouched
+        assert not np.array_equal(worn.albedo[pallet], mesh.albedo[pallet])
+        assert worn.albedo.min() >= 0.0 and worn.albedo.max() <= 1.0
+        chip = worn.texture == Texture.CONCRETE
+        if chip.any():
+            chipped += 1
+            vertical_grain = np.abs(mesh.tangent_u[:, 2]) > 0.9
+            assert chip.sum() == 9 * 12  # the nine blocks, all of them, twelve triangles each
+            assert vertical_grain[chip].sum() >= 9 * 8  # their side faces (the grain runs up them)
+        np.testing.assert_array_equal(mesh.texture[pallet & ~chip], worn.texture[pallet & ~chip])
+    assert 1 <= chipped <= 9
+    assert not np.shares_memory(wear_pallet(mesh, True, np.random.default_rng(0)).albedo, mesh.albedo)
