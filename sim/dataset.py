@@ -18,7 +18,9 @@ What varies per frame (all SI units, poses in the world frame unless said otherw
 - the camera mount (`T_forklift_camera` at lift height 0): x -0.15..-0.05 m, y +-0.05 m, height
   0.3..0.6 m, tilt 15..40 deg down, pan +-3 deg, roll +-2 deg; with `mounts="pickup"` only mounts
   that `palletpilot calibrate` finds fit for the Pickup (`perception.view.pickup_view`: a pallet's
-  entry face and a load on it in view 1.2-3.0 m ahead of the fork tips), redrawn until one is;
+  entry face and a load on it in view 1.2-3.0 m ahead of the fork tips), redrawn until one is; with
+  `mounts="wide"` (views a forklift camera rarely gives but real photos do: level near the floor, or
+  from high up) height 0.08..1.6 m, tilt 0..60 deg, pan +-10 deg, roll +-5 deg;
 - the camera: D435-like 640x480 with depth noise, dropouts and flying pixels, RGB sensor noise
   1..4 levels, the renderer's per-frame lighting variation (light direction, ambient and diffuse
   intensity +-20 %, colour tint, ceiling-lamp phase); labels are exact (no label noise);
@@ -90,7 +92,7 @@ MISSIONS_DIR = bundled_path("missions")
 """Folder of the example map, fork and vehicle files."""
 MAP_FILE = "warehouse.yaml"
 
-MOUNTS = ("all", "pickup")
+MOUNTS = ("all", "pickup", "wide")
 """Camera mount sets: every mount of the ranges above, or only those fit for the Pickup."""
 MAX_LATERAL_M = 0.35
 MAX_YAW_DEG = 15.0
@@ -125,19 +127,21 @@ def pallet_nodes(missions_dir: Path = MISSIONS_DIR) -> list[tuple[str, float]]:
 
 
 def _mount(rng: np.random.Generator, missions_dir: Path, mounts: str) -> dict[str, float]:
-    """A random camera mount; with `mounts="pickup"` redrawn until `pickup_view` finds no problem."""
+    """A random camera mount; with `mounts="pickup"` redrawn until `pickup_view` finds no problem, with
+    `mounts="wide"` from wider ranges (the same number of draws, so the rest of the frame is unchanged)."""
     if mounts not in MOUNTS:
         raise ValueError(f"mounts must be one of {', '.join(MOUNTS)}, got {mounts!r}")
+    wide = mounts == "wide"
     while True:
         mount = {
             "x": float(rng.uniform(-0.15, -0.05)),
             "y": float(rng.uniform(-0.05, 0.05)),
-            "z": float(rng.uniform(0.3, 0.6)),
-            "tilt_deg": float(rng.uniform(15.0, 40.0)),
-            "pan_deg": float(rng.uniform(-3.0, 3.0)),
-            "roll_deg": float(rng.uniform(-2.0, 2.0)),
+            "z": float(rng.uniform(0.08, 1.6) if wide else rng.uniform(0.3, 0.6)),
+            "tilt_deg": float(rng.uniform(0.0, 60.0) if wide else rng.uniform(15.0, 40.0)),
+            "pan_deg": float(rng.uniform(-10.0, 10.0) if wide else rng.uniform(-3.0, 3.0)),
+            "roll_deg": float(rng.uniform(-5.0, 5.0) if wide else rng.uniform(-2.0, 2.0)),
         }
-        if mounts == "all" or _suits_pickup(mount, Path(missions_dir)):
+        if mounts != "pickup" or _suits_pickup(mount, Path(missions_dir)):
             return mount
 
 

@@ -233,3 +233,18 @@ def test_worn_pallets_change_colours_only_and_chip_only_blocks():
         np.testing.assert_array_equal(mesh.texture[pallet & ~chip], worn.texture[pallet & ~chip])
     assert 1 <= chipped <= 9
     assert not np.shares_memory(wear_pallet(mesh, True, np.random.default_rng(0)).albedo, mesh.albedo)
+
+
+def test_wide_mounts_reach_level_low_and_high_views_of_the_same_scene():
+    from palletpilot.sim.dataset import random_scenario
+
+    heights, tilts = [], []
+    for i in range(40):
+        wide, _, _ = random_scenario(np.random.default_rng([3, i]), mounts="wide")
+        plain, _, _ = random_scenario(np.random.default_rng([3, i]), mounts="all")
+        assert [p.node for p in wide.pallets] == [p.node for p in plain.pallets]  # same draws after the mount
+        heights.append(wide.camera.mount.z)
+        tilts.append(wide.camera.mount.tilt_deg)
+    assert min(heights) < 0.3 and max(heights) > 1.0 and min(tilts) < 10.0 and max(tilts) > 45.0
+    frame = render_frame(2, seed=5, mounts="wide", realism=True)
+    assert frame.rgb is not None and frame.rgb.shape == (480, 640, 3)
