@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from palletpilot.bench.pallet_coverage import Honesty
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, SE3
@@ -92,8 +93,9 @@ FAMILIES = (
     "mismatch",
 )
 """Pallet families of `--families`."""
-FAMILY_GOALS = {"lateral_mm_p95": 10.0, "yaw_deg_p95": 0.5, "wrong_pose": 0}
-"""Goals of issue 17 per pallet family."""
+FAMILY_GOALS = {"lateral_mm_p95": 10.0, "yaw_deg_p95": 0.5, "wrong_pose": 0, "coverage": 0.90}
+"""Goals per pallet family: issue 17's, and issue 37's `coverage` (on every axis, of the single frames and
+of the fused estimates, at least this share of errors within 2 stated sigmas)."""
 WRONG_POSE_MM = 30.0
 WRONG_POSE_DEG = 1.0
 """An estimate this far (lateral or longitudinal, mm; or yaw, deg) off the truth is beyond the limits."""
@@ -561,6 +563,20 @@ def _family_result(
     return res
 
 
+def _add_coverage(res: dict[str, Any], honesty: dict[str, Any]) -> None:
+    """Put a family's `Honesty.result()` into its figures: `coverage` in `per_frame` and `per_estimate`,
+    the crop check as `crop`, and the `coverage` goal."""
+    res["per_frame"]["coverage"] = honesty["per_frame"]
+    res["per_estimate"]["coverage"] = honesty["per_estimate"]
+    res["crop"] = honesty["crop"]
+    goal = FAMILY_GOALS["coverage"]
+    res["goals"]["coverage"] = {"goal": goal, "worst": honesty["worst"], "met": _meets_at_least(honesty["worst"], goal)}
+
+
+def _meets_at_least(value: float | None, goal: float) -> bool:
+    return value is not None and value >= goal
+
+
 def run_families(args: argparse.Namespace) -> dict:
     """Every pallet family of `args.families` on `args.frames` standpoints, ground-truth labels and the
     true calibration; per standpoint rounds of `args.frames_per_estimate` frames fused as the Pickup
@@ -582,6 +598,7 @@ def run_families(args: argparse.Namespace) -> dict:
         ms: list[float] = []
         taken: list[int] = []
         type_doubts = 0  # standpoints whose frames refused the type as often as they found it: not found
+        honesty = Honesty()  # errors against the stated spreads (issue 37)
         for k, base in enumerate(specs):
             spec, told = family_spec(family, base, k)
             t0 = time.perf_counter()
@@ -608,6 +625,9 @@ def run_families(args: argparse.Namespace) -> dict:
                         per_frame.append(_errors(T_true, est.T_forklift_pallet))
                         sp = est.spread
                         sigmas.append((sp.y_m, sp.x_m, sp.yaw_rad))
+                        honesty.add_frame(T_true, est)
+                        if len(found) == 1 and family != "mismatch":
+                            honesty.add_crop(frame, cal, pallet_type(told), est)
                 n_taken += len(frames)
                 verdict = policy.after_round(found, reasons, n_taken)  # as the Pickup decides
                 more = verdict.more
@@ -620,8 +640,11 @@ def run_families(args: argparse.Namespace) -> dict:
             type_doubts += verdict.type_in_doubt
             if verdict.fused is not None:
                 fused.append(_errors(T_true, verdict.fused.T_forklift_pallet))
+                honesty.add_fused(T_true, verdict.fused)
         out[family] = _family_result(family, len(specs), per_frame, sigmas, fused, fails, ms, taken)
         out[family]["type_in_doubt_standpoints"] = type_doubts
+        if family != "mismatch":
+            _add_coverage(out[family], honesty.result())
     return {
         "standpoints": len(specs),
         "frames_per_estimate": per,

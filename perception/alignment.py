@@ -19,6 +19,15 @@ Tolerances come from the geometry:
   `reach - back_row_x - longitudinal_margin`, and never less than the margin itself.
 - yaw: `yaw_limit_deg`, and no more than what the lateral clearance allows on its own.
 
+With the estimate's spread (`PalletSpread`, 1-sigma), "aligned" means aligned with its uncertainty
+taken into account: each difference plus `ALIGNMENT_SIGMAS` (k = 2) of its 1-sigma must lie within its
+tolerance, i.e. `|lateral| + reach * |sin(yaw)| + k * sqrt(sigma_y^2 + (reach * cos(yaw) * sigma_yaw)^2)`,
+`longitudinal -+ k * sigma_x` and `|yaw| + k * sigma_yaw`. The spread is stated in the forklift frame,
+which at the pre-pallet node looks along the node (x along, y across, to within the misplacement's few
+degrees), so its x and y serve as the longitudinal and lateral sigmas. k = 2: an estimate judged aligned
+is within the tolerances with about 98 % confidence on each (one-sided, Gaussian); the tolerances'
+own margins (`lateral_margin_m`, ...) are for localization and control, not for the estimate.
+
 Misaligned results carry the corrected pallet node: `node_pose_for_pallet(T_world_pallet)`.
 """
 
@@ -30,6 +39,7 @@ from typing import Protocol
 
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.angles import wrap_angle
+from palletpilot.perception.pallet_estimate import PalletSpread
 from palletpilot.perception.specs import (
     ENTRY_GAP_M,
     ForkGeometry,
@@ -37,6 +47,9 @@ from palletpilot.perception.specs import (
     node_pose_for_pallet,
     pallet_pose_at_node,
 )
+
+ALIGNMENT_SIGMAS = 2.0
+"""k: an estimate is aligned when each difference plus k of its stated 1-sigma lies within its tolerance."""
 
 
 class PalletNodeLike(Protocol):
@@ -102,7 +115,9 @@ class AlignmentResult:
     """The alignment decision with the three differences (estimate in the nominal pallet frame).
 
     `corrected_node_pose` (world, SE2) is the pallet node that would serve the estimated pallet; it is
-    set when `aligned` is false. `problems` names each exceeded tolerance.
+    set when `aligned` is false. `problems` names each exceeded tolerance. `uncertainty`: what the
+    estimate's spread added to the lateral sweep, the longitudinal and the yaw difference (m, m, rad;
+    k sigma each, zeros without a spread).
     """
 
     aligned: bool
@@ -112,6 +127,7 @@ class AlignmentResult:
     tolerances: AlignmentTolerances
     problems: tuple[str, ...] = ()
     corrected_node_pose: SE2 | None = None
+    uncertainty: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def to_json(self) -> dict:
         """The decision in mm and degrees."""
@@ -121,6 +137,11 @@ class AlignmentResult:
             "longitudinal_mm": round(self.longitudinal_m * 1e3, 2),
             "yaw_deg": round(math.degrees(self.yaw_rad), 3),
             "tolerances": self.tolerances.to_json(),
+            "uncertainty": {
+                "lateral_mm": round(self.uncertainty[0] * 1e3, 2),
+                "longitudinal_mm": round(self.uncertainty[1] * 1e3, 2),
+                "yaw_deg": round(math.degrees(self.uncertainty[2]), 3),
+            },
             "problems": list(self.problems),
         }
         if self.corrected_node_pose is not None:
@@ -133,29 +154,43 @@ class AlignmentResult:
         return doc
 
 
-def check_alignment(T_world_pallet: SE3, node: PalletNodeLike, tolerances: AlignmentTolerances) -> AlignmentResult:
-    """Compare an estimated `T_world_pallet` with the pallet expected at `node` (see the module docstring)."""
+def check_alignment(
+    T_world_pallet: SE3,
+    node: PalletNodeLike,
+    tolerances: AlignmentTolerances,
+    spread: PalletSpread | None = None,
+    k_sigma: float = ALIGNMENT_SIGMAS,
+) -> AlignmentResult:
+    """Compare an estimated `T_world_pallet` with the pallet expected at `node`, with the estimate's
+    `spread` (1-sigma, forklift frame) taken into account at `k_sigma` when given (see the module docstring)."""
     T_nominal = pallet_pose_at_node(node.pose, node.height)
     diff = (T_nominal.inv() @ T_world_pallet).to_se2()
     lateral, longitudinal, yaw = diff.y, diff.x, float(wrap_angle(diff.yaw))
     tol = tolerances
+    u_lat = u_lon = u_yaw = 0.0
+    if spread is not None:
+        u_lat = k_sigma * math.hypot(spread.y_m, tol.reach_m * math.cos(yaw) * spread.yaw_rad)
+        u_lon, u_yaw = k_sigma * spread.x_m, k_sigma * spread.yaw_rad
     problems = []
-    sweep = abs(lateral) + tol.reach_m * abs(math.sin(yaw))
-    if sweep > tol.lateral_m:
+    tips = tol.reach_m * abs(math.sin(yaw))
+    if abs(lateral) + tips + u_lat > tol.lateral_m:
+        also = f" and {k_sigma:g} sigma of the estimate's {u_lat * 1e3:.1f} mm" if spread is not None else ""
         problems.append(
-            f"lateral {lateral * 1e3:+.1f} mm (with the yaw's {tol.reach_m * abs(math.sin(yaw)) * 1e3:.1f} mm at the "
-            f"fork tips) exceeds {tol.lateral_m * 1e3:.1f} mm"
+            f"lateral {lateral * 1e3:+.1f} mm (with the yaw's {tips * 1e3:.1f} mm at the fork tips{also}) exceeds "
+            f"{tol.lateral_m * 1e3:.1f} mm"
         )
-    if longitudinal < -tol.longitudinal_near_m:
+    lon_u = f" ({k_sigma:g} sigma: {u_lon * 1e3:.1f} mm)" if spread is not None else ""
+    if longitudinal - u_lon < -tol.longitudinal_near_m:
         problems.append(
-            f"longitudinal {longitudinal * 1e3:+.1f} mm: nearer than {tol.longitudinal_near_m * 1e3:.1f} mm"
+            f"longitudinal {longitudinal * 1e3:+.1f} mm{lon_u}: nearer than {tol.longitudinal_near_m * 1e3:.1f} mm"
         )
-    if longitudinal > tol.longitudinal_far_m:
+    if longitudinal + u_lon > tol.longitudinal_far_m:
         problems.append(
-            f"longitudinal {longitudinal * 1e3:+.1f} mm: farther than {tol.longitudinal_far_m * 1e3:.1f} mm"
+            f"longitudinal {longitudinal * 1e3:+.1f} mm{lon_u}: farther than {tol.longitudinal_far_m * 1e3:.1f} mm"
         )
-    if abs(yaw) > tol.yaw_rad:
-        problems.append(f"yaw {math.degrees(yaw):+.2f} deg exceeds {math.degrees(tol.yaw_rad):.2f} deg")
+    if abs(yaw) + u_yaw > tol.yaw_rad:
+        yaw_u = f" ({k_sigma:g} sigma: {math.degrees(u_yaw):.2f} deg)" if spread is not None else ""
+        problems.append(f"yaw {math.degrees(yaw):+.2f} deg{yaw_u} exceeds {math.degrees(tol.yaw_rad):.2f} deg")
     aligned = not problems
     return AlignmentResult(
         aligned=aligned,
@@ -165,4 +200,5 @@ def check_alignment(T_world_pallet: SE3, node: PalletNodeLike, tolerances: Align
         tolerances=tol,
         problems=tuple(problems),
         corrected_node_pose=None if aligned else node_pose_for_pallet(T_world_pallet),
+        uncertainty=(u_lat, u_lon, u_yaw),
     )

@@ -285,16 +285,16 @@ def _estimate(
     psi, D = plane.psi, plane.D
     origin = plane.point(cam, s0)
     T_fp = SE3(Rotation.from_euler("z", psi), (origin[0], origin[1], z0))
-    sx, sy, syaw = _spread(plane, cam, s0, sigma_s, cov3)
-    if deck is not None:
-        syaw = deck.sigma_psi
-    # The camera's depth scale error s moves every point along its ray by s times its range: the same
-    # for every frame of this camera.
-    cx, cy = (cfg.depth_scale_sigma * abs(float(origin[i] - cam[i])) for i in (0, 1))
+    # The frame's own noise, and what every frame from here shares: the camera's depth scale, the pallet's
+    # build tolerance, the pixel grid (`_spread`).
+    deck_yaw = None if deck is None else (deck.sigma_psi, deck.floor, model.length)
+    spread = _spread(
+        plane, cam, s0, sigma_s, cov3, cfg=cfg, columns=model.columns, footprint=footprint, deck_yaw=deck_yaw
+    )
     res = all_rays.w - plane.predict(all_rays.d)
     estimate = PalletEstimate(
         T_forklift_pallet=T_fp,
-        spread=PalletSpread(math.hypot(sx, cx), math.hypot(sy, cy), syaw, cx, cy),
+        spread=spread,
         n_points=len(rows),
         n_face_points=n_face,
         pocket_widths_m=(float(left_w), float(right_w)),

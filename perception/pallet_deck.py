@@ -31,13 +31,15 @@ _ON_DECK_CLASSES = (int(SemanticClass.CARGO), int(SemanticClass.OTHER_OBJECT), i
 class _DeckYaw:
     """Result of `_deck_yaw`: the yaw (rad) and its 1-sigma (rad), the deck pixels used, the deck height (m),
     and the sideways shift (m, along the face's lateral unit vector `_Plane.e`) of the face centre that
-    the best yaw took."""
+    the best yaw took; `floor` (rad): the part of the 1-sigma that the pixel grid sets (the deck's far
+    end quantised to a pixel), the same in every frame from the standpoint."""
 
     psi: float
     sigma_psi: float
     n_pixels: int
     deck_height: float
     shift: float = 0.0
+    floor: float = 0.0
 
 
 class _DeckPixels(NamedTuple):
@@ -222,5 +224,6 @@ def _deck_yaw(
         dpsi, shift = float(grid[i]), float(best_shift[i])
     near_min = grid[tot <= tot.min() + 1.0]
     footprint_far = float(np.max(z_deck)) / float(frame.K[0, 0])
-    sig = cfg.deck_sigma_scale * max(0.5 * float(np.ptp(near_min)), footprint_far / math.sqrt(12.0) / model.length)
-    return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), len(w), deck_h, shift)
+    floor = footprint_far / math.sqrt(12.0) / model.length
+    sig = cfg.deck_sigma_scale * max(0.5 * float(np.ptp(near_min)), floor)
+    return _DeckYaw(psi_face + dpsi, min(sig, sigma_face), len(w), deck_h, shift, min(floor, sigma_face))

@@ -112,6 +112,11 @@ class PalletEstimatorConfig:
     every frame of one camera): it moves the pallet along the camera's ray by s times its distance, 6 mm
     at 3.5 m. 0.0017 is +-0.3 % uniform, the simulator's D435; a camera with a depth tare
     (`perception.depth_tare`) is known to about 0.04 % (`TARED_DEPTH_SCALE_SIGMA`)."""
+    build_tolerance_m: float = 0.005
+    """A real pallet's boards and blocks are off its type's drawing: sizes by up to +- this, face positions by
+    up to +- half of it (uniform; the `tolerance` family of `bench pallet`). Every frame of the pallet sees
+    the same deviations, so they are stated as the spread's common part (`PalletSpread`, `_common_spread`):
+    the entry face's parts tilt the face (yaw), its blocks' sides move the pocket edges (lateral)."""
     deck_yaw: bool = True
     """Refine the yaw with the top deck's board edges where the camera sees the deck (see `_deck_yaw`)."""
     deck_min_pixels: int = 150
@@ -159,8 +164,11 @@ def estimator_config(depth_tared: bool) -> PalletEstimatorConfig:
 class PalletSpread:
     """1-sigma uncertainty of a pallet estimate: x, y (m, forklift frame) and yaw (rad).
 
-    `x_common_m`, `y_common_m`: the part of `x_m`, `y_m` that every frame of the same camera shares (its
-    depth scale error moves the whole point cloud along the rays), which fusing frames does not reduce.
+    `x_common_m`, `y_common_m`, `yaw_common_rad`: the part of `x_m`, `y_m`, `yaw_rad` that every frame of
+    the same pallet from the same standpoint shares, which fusing frames does not reduce: the camera's
+    depth scale error (it moves the whole point cloud along the rays), the pallet's build tolerance (its
+    parts are where they are in every frame) and the pixel grid's quantisation of edges (the same pixels
+    see the same edges). The rest (`x_own_m`, `y_own_m`, `yaw_own_rad`) is each frame's own noise.
     """
 
     x_m: float
@@ -168,6 +176,7 @@ class PalletSpread:
     yaw_rad: float
     x_common_m: float = 0.0
     y_common_m: float = 0.0
+    yaw_common_rad: float = 0.0
 
     @property
     def x_own_m(self) -> float:
@@ -179,14 +188,20 @@ class PalletSpread:
         """The part of `y_m` that is this frame's own (without `y_common_m`)."""
         return math.sqrt(max(self.y_m**2 - self.y_common_m**2, 0.0))
 
+    @property
+    def yaw_own_rad(self) -> float:
+        """The part of `yaw_rad` that is this frame's own (without `yaw_common_rad`)."""
+        return math.sqrt(max(self.yaw_rad**2 - self.yaw_common_rad**2, 0.0))
+
     def to_json(self) -> dict[str, float]:
-        """`x_m`, `y_m` (m) and `yaw_deg`, and the common parts `x_common_m`, `y_common_m` (m)."""
+        """`x_m`, `y_m` (m) and `yaw_deg`, and the common parts `x_common_m`, `y_common_m` (m), `yaw_common_deg`."""
         return {
             "x_m": round(self.x_m, 6),
             "y_m": round(self.y_m, 6),
             "yaw_deg": round(math.degrees(self.yaw_rad), 5),
             "x_common_m": round(self.x_common_m, 6),
             "y_common_m": round(self.y_common_m, 6),
+            "yaw_common_deg": round(math.degrees(self.yaw_common_rad), 5),
         }
 
 
@@ -248,9 +263,10 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     x, y (forklift frame, and the world frame where every estimate has `T_world_pallet`) and yaw are
     inverse-variance weighted means (the spreads come from each frame's fit, so a frame that sees
     less counts less); the height is the plain mean. The spread of the result is that of the
-    weighted mean, 1 / sqrt(sum of 1 / sigma^2), with the part every frame shares (`x_common_m`,
-    `y_common_m`: the camera's depth scale) added back, undiminished. All estimates must be of the same pallet from the
-    same standpoint (the forklift frame does not move between them).
+    weighted mean of the frames' own parts, 1 / sqrt(sum of 1 / sigma_own^2), with the part every frame
+    shares (`x_common_m`, `y_common_m`, `yaw_common_rad`: the camera's depth scale, the pallet's build,
+    the pixel grid) added back, undiminished. All estimates must be of the same pallet from the same
+    standpoint (the forklift frame does not move between them).
     """
     if not estimates:
         raise ValueError("fuse_estimates: no estimates")
@@ -261,7 +277,7 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     # normalised, they are the weights.
     px, py, pyaw = (
         1.0 / np.maximum(np.array([getattr(e.spread, k) for e in estimates]), 1e-9) ** 2
-        for k in ("x_own_m", "y_own_m", "yaw_rad")
+        for k in ("x_own_m", "y_own_m", "yaw_own_rad")
     )
     wx, wy, wyaw = px / px.sum(), py / py.sum(), pyaw / pyaw.sum()
 
@@ -285,7 +301,8 @@ def fuse_estimates(estimates: list[PalletEstimate]) -> PalletEstimate:
     fused = [float(1.0 / math.sqrt(p.sum())) for p in (px, py, pyaw)]
     cx = float(np.mean([e.spread.x_common_m for e in estimates]))
     cy = float(np.mean([e.spread.y_common_m for e in estimates]))
-    spread = PalletSpread(math.hypot(fused[0], cx), math.hypot(fused[1], cy), fused[2], cx, cy)
+    cyaw = float(np.mean([e.spread.yaw_common_rad for e in estimates]))
+    spread = PalletSpread(math.hypot(fused[0], cx), math.hypot(fused[1], cy), math.hypot(fused[2], cyaw), cx, cy, cyaw)
     first = estimates[0]
     return PalletEstimate(
         T_forklift_pallet=T_fp,
@@ -317,7 +334,10 @@ class FramePolicy:
     its errors over that sigma spread about 1), so three such frames can still be 0.9 deg off. The
     Pickup therefore takes `per_round` frames, fuses them, and while the fused yaw 1-sigma is above
     `yaw_sigma_rad` takes another round, up to `max_frames` in all; nearer or empty pallets (deck in
-    view) meet the limit with the first round.
+    view) meet the limit with the first round. Only the frames' own part of the yaw sigma
+    (`PalletSpread.yaw_own_rad`) shrinks with more frames: once it is no larger than the common part
+    (the pallet's build, the pixel grid), doubling the frames would cut the fused sigma by at most 13 %,
+    and the estimate is judged as it is (the alignment check takes its sigma into account).
     """
 
     per_round: int = 3
@@ -344,7 +364,10 @@ class FramePolicy:
 
     def more_frames(self, fused: PalletEstimate | None, frames_taken: int) -> int:
         """Frames to take before judging (0: judge `fused` now): another round while the fused yaw is
-        uncertain and `max_frames` allows; none without an estimate (nothing seen is judged at once)."""
+        uncertain, more frames can still make it less so (its own part exceeds the common part) and
+        `max_frames` allows; none without an estimate (nothing seen is judged at once)."""
         if fused is None or fused.spread.yaw_rad <= self.yaw_sigma_rad:
+            return 0
+        if fused.spread.yaw_own_rad <= fused.spread.yaw_common_rad:
             return 0
         return max(0, min(self.per_round, self.max_frames - frames_taken))

@@ -13,7 +13,8 @@ Package-internal API (used by `perception.pallet`, `perception.pallet_model`, `p
   `_FaceCoords` / `_face_coords` (rays on the plane: `s`, `h`, their slopes behind it).
 - Fits: `_ransac` (RANSAC over pixel pairs, then re-weighted least squares), `_fit_plane` (least
   squares), `_joint_refine` (Gauss-Newton on face and side-wall pixels), `_robust_sigma` (MAD).
-- Spread: `_yaw_variance` (of the plane's yaw), `_spread` (1-sigma of the pallet origin and yaw).
+- Spread: `_yaw_variance` (of the plane's yaw), `_spread` (1-sigma of the pallet origin and yaw from
+  the frame's own noise), `_common_spread` (the part every frame shares), `_face_lever`.
 - Image support: `_face_run` (lateral extent of the face inliers), `_depth_edges` (pixels at depth
   jumps), `_roi` / `_image_box` (image rows and columns covering forklift-frame points).
 """
@@ -27,7 +28,7 @@ import numpy as np
 
 from palletpilot.geometry import SE3
 from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.pallet_estimate import PalletEstimatorConfig, PalletNotFound
+from palletpilot.perception.pallet_estimate import PalletEstimatorConfig, PalletNotFound, PalletSpread
 
 
 @dataclass
@@ -230,13 +231,35 @@ def _yaw_variance(plane: _Plane) -> float:
 
 
 def _spread(
-    plane: _Plane, cam: np.ndarray, s0: float, sigma_s: float, cov3: np.ndarray | None
-) -> tuple[float, float, float]:
-    """1-sigma of the pallet origin's x, y (m, forklift frame) and yaw (rad).
+    plane: _Plane,
+    cam: np.ndarray,
+    s0: float,
+    sigma_s: float,
+    cov3: np.ndarray | None,
+    *,
+    cfg: PalletEstimatorConfig,
+    columns: np.ndarray,
+    footprint: float,
+    deck_yaw: tuple[float, float, float] | None = None,
+) -> PalletSpread:
+    """1-sigma of the pallet origin's x, y (m, forklift frame) and yaw (rad): this frame's own noise plus
+    what every frame from the standpoint shares (`PalletSpread`'s common parts).
 
-    Along the face normal: the plane fit's inverse-depth uncertainty at the origin's ray; along the
-    face: `sigma_s` from the pocket edges (the edges fix a point on the face whatever the yaw); yaw:
-    the plane fit's covariance (`cov3`, of psi, D and s0, when the joint fit ran).
+    Own: along the face normal, the plane fit's inverse-depth uncertainty at the origin's ray; along the
+    face, `sigma_s` from the pocket edges (the edges fix a point on the face whatever the yaw); yaw, the
+    plane fit's covariance (`cov3`, of psi, D and s0, when the joint fit ran), or the deck's
+    (`deck_yaw`: its 1-sigma, the part of it the pixel grid sets, and the deck's length in m).
+
+    Common (errors the per-pixel noise model cannot see): each face part (block, board) is off the drawing
+    by `part` = `cfg.build_tolerance_m` / (2 sqrt 3) (uniform within +- half the tolerance), so the face
+    plane, fitted over some four parts, is off by part / 2 along its normal and turned by part /
+    `_face_lever(columns)`; the pocket centre, the mean of four block-side edges, is off sideways by part /
+    2 and by its edges' quantisation, footprint / sqrt(12) (`footprint`: a pixel's width on the face, m; the
+    four edges lie on one pixel grid, so their quantisation errors do not average out: on `bench pallet
+    --families tolerance`, seed 0, the three frames of a standpoint at 2.5 m agreed to 1 mm and were 4-5 mm
+    off together). A deck yaw's board edges, straight to `part` at either end, turn by sqrt(2) part /
+    length; its pixel-grid part is common too (and taken out of the own part). The depth scale error moves
+    the origin along its ray (`_common_spread`).
     """
     n, e = plane.n, plane.e
     origin = plane.point(cam, s0)
@@ -246,7 +269,37 @@ def _spread(
     sigma_n = float(n @ u) * sigma_lam
     cov_xy = sigma_n**2 * np.outer(n[:2], n[:2]) + sigma_s**2 * np.outer(e[:2], e[:2])
     var_yaw = float(cov3[0, 0]) if cov3 is not None else _yaw_variance(plane)
-    return math.sqrt(cov_xy[0, 0]), math.sqrt(cov_xy[1, 1]), math.sqrt(max(var_yaw, 0.0))
+    sx, sy, syaw = math.sqrt(cov_xy[0, 0]), math.sqrt(cov_xy[1, 1]), math.sqrt(max(var_yaw, 0.0))
+    part = cfg.build_tolerance_m / (2.0 * math.sqrt(3.0))
+    cyaw = part / max(_face_lever(columns), 1e-3)
+    if deck_yaw is not None:
+        sigma_deck, floor, length = deck_yaw
+        syaw = math.sqrt(max(sigma_deck**2 - floor**2, 0.0))
+        cyaw = math.hypot(math.sqrt(2.0) * part / length, floor)
+    cx, cy = _common_spread(
+        plane, cam, origin, 0.5 * part, math.hypot(0.5 * part, footprint / math.sqrt(12.0)), cfg.depth_scale_sigma
+    )
+    return PalletSpread(math.hypot(sx, cx), math.hypot(sy, cy), math.hypot(syaw, cyaw), cx, cy, cyaw)
+
+
+def _face_lever(columns: np.ndarray) -> float:
+    """Root of the summed squared lateral distances (m) of the block columns' centres from their mean: a
+    face part's offset `d` along the normal turns the face by about d / lever."""
+    centres = np.asarray(columns, float).mean(axis=1)
+    return float(np.sqrt(np.sum((centres - centres.mean()) ** 2)))
+
+
+def _common_spread(
+    plane: _Plane, cam: np.ndarray, origin: np.ndarray, sigma_n: float, sigma_e: float, depth_scale_sigma: float
+) -> tuple[float, float]:
+    """1-sigma x, y (m, forklift frame) of the part of the pallet origin's error that every frame from the
+    standpoint shares: `sigma_n` along the face normal and `sigma_e` along the face (the pallet's build,
+    the pixel grid), and the camera's depth scale error, which moves the origin along its ray by
+    `depth_scale_sigma` times the ray's length."""
+    n, e = plane.n[:2], plane.e[:2]
+    ray = (origin - cam)[:2]
+    cov = sigma_n**2 * np.outer(n, n) + sigma_e**2 * np.outer(e, e) + depth_scale_sigma**2 * np.outer(ray, ray)
+    return math.sqrt(cov[0, 0]), math.sqrt(cov[1, 1])
 
 
 def _face_run(s: np.ndarray, max_gap: float) -> tuple[float, float]:

@@ -45,7 +45,7 @@ def test_json_output(tmp_path, frame, calib, capsys):
     assert T.shape == (4, 4) and np.allclose(T[:3, 3], truth[:3, 3], atol=2e-3)
     assert doc["x_m"] == pytest.approx(truth[0, 3], abs=1e-3) and doc["y_m"] == pytest.approx(truth[1, 3], abs=1e-3)
     assert doc["yaw_deg"] == pytest.approx(4.0, abs=0.05)
-    assert set(doc["spread"]) == {"x_m", "y_m", "yaw_deg", "x_common_m", "y_common_m"}
+    assert set(doc["spread"]) == {"x_m", "y_m", "yaw_deg", "x_common_m", "y_common_m", "yaw_common_deg"}
 
 
 def test_text_output(tmp_path, frame, calib, capsys):

@@ -45,7 +45,8 @@ def errors(frame: FrameBundle, T_forklift_pallet: SE3) -> tuple[float, float, fl
 )
 def test_noise_free_frames_are_sub_millimetre(spec):
     frame, _ = render(spec, noise=False)
-    exact_depth = dataclasses.replace(pallet_module.DEFAULT_CONFIG, depth_scale_sigma=0.0)  # no depth scale error
+    # No depth scale error, and a pallet built exactly to its drawing (no build tolerance in the spread).
+    exact_depth = dataclasses.replace(pallet_module.DEFAULT_CONFIG, depth_scale_sigma=0.0, build_tolerance_m=0.0)
     est = estimate_pallet(frame, true_calibration(frame), config=exact_depth)
     lateral, longitudinal, height, yaw = errors(frame, est.T_forklift_pallet)
     assert abs(lateral) < 1e-3 and abs(longitudinal) < 1e-3
@@ -53,7 +54,8 @@ def test_noise_free_frames_are_sub_millimetre(spec):
     assert abs(height) < 2e-3  # the underside comes from pixel-quantised pocket edges: ~1/4 pixel
     pallet = PalletType.eur()
     assert est.pocket_widths_m == pytest.approx((pallet.pocket_width,) * 2, abs=4e-3)
-    # The lateral spread is floored at half a pixel footprint (3.5 mm at 4.2 m), the rest comes from the fit.
+    # The lateral spread is floored at half a pixel footprint (3.5 mm at 4.2 m) with the pixel grid's common
+    # part, the rest comes from the fit.
     assert est.spread.x_m < 1e-3 and est.spread.y_m < 4e-3 and est.spread.yaw_rad < math.radians(0.05)
 
 
@@ -129,18 +131,21 @@ def test_fused_estimates_weigh_each_frame_by_its_spread():
     T_world_forklift = SE2(3.0, 1.0, 0.3)
     frame, _ = render(spec)
     est = estimate_pallet(frame, true_calibration(frame), T_world_forklift=T_world_forklift)
-    # A second "frame" of the same pallet 0.2 deg further turned but four times less sure of its yaw.
+    # A second "frame" of the same pallet 0.2 deg further turned but four times less sure of its yaw (its own
+    # part: the part every frame shares, `yaw_common_rad`, is the same pallet's).
     turned = est.T_forklift_pallet @ SE3.from_xyz_rpy((0.0, 0.0, 0.0), (0.0, 0.0, math.radians(0.2)))
+    own, common = est.spread.yaw_own_rad, est.spread.yaw_common_rad
+    assert common > 0.0
     other = dataclasses.replace(
         est,
         T_forklift_pallet=turned,
         T_world_pallet=T_world_forklift.to_se3() @ turned,
-        spread=dataclasses.replace(est.spread, yaw_rad=4 * est.spread.yaw_rad),
+        spread=dataclasses.replace(est.spread, yaw_rad=math.hypot(4 * own, common)),
     )
     fused = fuse_estimates([est, other])
     turn = math.degrees(fused.T_forklift_pallet.to_se2().yaw - est.T_forklift_pallet.to_se2().yaw)
     assert turn == pytest.approx(0.2 / 17, abs=1e-6)  # weights 16 : 1
-    assert fused.spread.yaw_rad == pytest.approx(est.spread.yaw_rad / math.sqrt(1 + 1 / 16))
+    assert fused.spread.yaw_rad == pytest.approx(math.hypot(own / math.sqrt(1 + 1 / 16), common))
     assert fused.T_world_pallet is not None
     assert fused.T_world_pallet.isclose(T_world_forklift.to_se3() @ fused.T_forklift_pallet, atol=1e-9, atol_rot=1e-9)
     assert fuse_estimates([est]) is est
