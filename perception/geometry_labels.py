@@ -73,12 +73,16 @@ DEFAULT_ENVELOPE = Envelope()
 """The executor's envelope (`Settings.envelope_*`)."""
 
 FLOOR_MARGIN_M = 0.015
-"""Points less than this above the support are the support (floor noise at 4 m has a sigma of ~8 mm)."""
+"""Points less than this above the support are the support, or `FLOOR_SIGMAS` of their height's noise where
+that is more (a stereo camera's depth error grows with the square of the depth)."""
+FLOOR_SIGMAS = 3.0
+DEPTH_NOISE_K = 0.0042
+"""Depth noise sigma(z) = k z^2 (m; a D435 at 640 x 480, `PalletEstimatorConfig.depth_noise_k`)."""
 TOP_MARGIN_M = 0.02
 """The pallet band reaches this far above the deck (a board proud of the deck, depth noise)."""
 REGION_MARGIN_M = 0.10
 """The envelope's region is grown by this (the pallet's own build tolerance, depth noise at its edges)."""
-AHEAD_X_M = (0.2, 8.0)
+AHEAD_X_M = (0.2, 6.0)
 AHEAD_Y_M = 3.0
 """Without an expected pose: the region ahead of the forks (forklift x range and |y|, m)."""
 HINT_OPEN_PX = 5
@@ -163,15 +167,18 @@ def pallet_labels(
     expected: SE2 | None = None,
     support_height_m: float = 0.0,
     envelope: Envelope = DEFAULT_ENVELOPE,
+    depth_noise_k: float = DEPTH_NOISE_K,
 ) -> PalletLabels:
     """The labels that select the pallet's pixels in `frame`, by `mode`.
 
     `T_forklift_camera`: the camera at the frame's fork height; `expected`: `T_forklift_pallet` (SE2) where
-    the pallet should stand (None: anywhere ahead of the forks); `support_height_m`: the height (forklift
+    the pallet should stand (None: anywhere ahead of the forks, less the pieces of the band that reach the
+    image's lowest rows: the blades); `support_height_m`: the height (forklift
     frame, m) of what it stands on, the floor (0) or a rack's beams. `model`: the frame's own labels
     (`PerceptionError` without them). `geometry`: pallet-empty on the pixels in the band from
     `FLOOR_MARGIN_M` above the support to `TOP_MARGIN_M` above the deck inside the envelope, drivable on the
-    floor, unlabeled elsewhere. `fused`: the geometry's, plus the model's pallet pixels inside the envelope
+    floor, unlabeled elsewhere; the band starts higher where the depth is noisier (`FLOOR_SIGMAS` of a
+    point's height noise from `depth_noise_k`). `fused`: the geometry's, plus the model's pallet pixels inside the envelope
     (as blobs), less its person blobs; pallet-full where the model says a pallet is loaded.
     """
     if mode == LabelsMode.MODEL:
@@ -183,8 +190,15 @@ def pallet_labels(
     with np.errstate(invalid="ignore"):
         region = _region(pts, pallet, expected, envelope) & valid
         z = pts[..., 2] - support_height_m
-        band = region & (z >= FLOOR_MARGIN_M) & (z <= pallet.height + TOP_MARGIN_M)
+        depth = frame.depth
+        slope = np.abs(pts[..., 2] - T_forklift_camera.t[2]) / depth  # height change per metre of z-depth
+        floor_margin = np.maximum(FLOOR_MARGIN_M, FLOOR_SIGMAS * depth_noise_k * depth * depth * slope)
+        band = region & (z >= floor_margin) & (z <= pallet.height + TOP_MARGIN_M)
         floor = valid & (np.abs(pts[..., 2]) < FLOOR_MARGIN_M)
+    if expected is None:  # the forks (raised to the pallet) are in the band too: pieces from the image's bottom
+        from palletpilot.perception.calibration_features import _depth_edges
+
+        band &= ~_lower_pieces(band & ~_depth_edges(frame.depth, 0.03))
     labels = np.full(frame.depth.shape, SemanticClass.UNLABELED, np.uint8)
     labels[floor] = SemanticClass.DRIVABLE
     labels[band] = SemanticClass.PALLET_EMPTY

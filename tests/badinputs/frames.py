@@ -396,9 +396,9 @@ FRAME_CASES = [
         "labels: dtype must be uint8",
         _changed(lambda a: a.update(labels=a["labels"].astype(np.int32))),
     ),
-    Case(
+    Case(  # the model mode needs labels or RGB; geometry and fused (the default) go on from the depth
         "frame_no_labels_no_rgb",
-        ESTIMATE,
+        (*ESTIMATE, "--labels", "model"),
         2,
         "bad.npz: labels: missing, and there is no rgb",
         _changed(lambda a: [a.pop("labels"), a.pop("rgb")]),
