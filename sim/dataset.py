@@ -54,8 +54,8 @@ cameras show and the renders lack (`sim.dataset_realism`, its own generator seed
 `(seed, index, 3)`, so the frame's scene, colours and light stay those of the randomised frame): every
 board and block its own tone, replaced and weathered boards, pressed-chip blocks, dirt towards the
 floor; in the image wear blotches on the pallet, glare, auto-exposure with a soft shoulder and lens
-distortion (labels and depth remapped with the RGB, K zoomed, the coefficients in the truth as
-`lens_distortion_true`).
+distortion (labels and depth remapped with the RGB, K zoomed, the coefficients as the bundle's
+`dist`).
 
 Photometric effects that need no re-render (blur, motion blur, colour noise, gamma, JPEG, vignetting)
 are drawn per training step by `perception.train_segmentation.augment`.

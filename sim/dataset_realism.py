@@ -19,7 +19,8 @@ so that the scene, colours and light of the frame stay those drawn without it:
   lens distortion (one frame in two: radial Brown-Conrady k1 -0.30..0.05, k2 -0.05..0.10, tangential
   +-0.002, the frame zoomed in until no pixel falls outside the render; RGB bilinear, labels and depth
   nearest, so they stay aligned; K becomes the zoomed camera's and the coefficients, OpenCV order
-  k1, k2, p1, p2, k3, go into the truth as `lens_distortion_true`).
+  k1, k2, p1, p2, k3, the bundle's `dist`: perception undistorts such a frame before it segments it,
+  training reads the distorted image as it is, for cameras whose coefficients nobody gives).
 
 Motion blur, defocus, sensor noise, white balance, gamma, JPEG and vignetting are drawn per training
 step by `perception.train_segmentation.augment`, so they are not baked in here.
@@ -184,8 +185,7 @@ def _distort(bundle: FrameBundle, rgb: np.ndarray, real: np.random.Generator) ->
         bundle.depth.dtype, copy=False
     )
     labels = None if bundle.labels is None else cv2.remap(bundle.labels, map_x, map_y, nearest, borderMode=edge)
-    truth = {**bundle.truth, "lens_distortion_true": dist}
-    return dataclasses.replace(bundle, depth=depth, labels=labels, K=K, truth=truth), rgb
+    return dataclasses.replace(bundle, depth=depth, labels=labels, K=K, dist=dist), rgb
 
 
 def camera_effects(bundle: FrameBundle, real: np.random.Generator) -> FrameBundle:

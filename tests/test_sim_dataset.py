@@ -142,13 +142,16 @@ def test_realism_frames_are_valid_seeded_deterministic_and_keep_the_scene(tmp_pa
         b = render_frame(index, seed=5, realism=True, mounts="pickup")
         for key in ("rgb", "labels", "depth", "K"):
             np.testing.assert_array_equal(getattr(a, key), getattr(b, key))  # a function of (seed, index)
-        assert a.truth.keys() == b.truth.keys()
+        assert a.truth.keys() == b.truth.keys() and (a.dist is None) == (b.dist is None)
         again = load_bundle(save_bundle(tmp_path / f"{index}.npz", a))  # a valid bundle, written and read back
         np.testing.assert_array_equal(again.rgb, a.rgb)
+        if a.dist is not None:
+            np.testing.assert_array_equal(again.dist, a.dist)
+            np.testing.assert_array_equal(b.dist, a.dist)
         randomised = render_frame(index, seed=5, randomise=True, mounts="pickup")
         assert a.rgb is not None and randomised.rgb is not None
         assert np.abs(a.rgb.astype(int) - randomised.rgb.astype(int)).mean() > 2.0  # another look ...
-        if "lens_distortion_true" not in a.truth:  # ... of the same scene (its own generator)
+        if a.dist is None:  # ... of the same scene (its own generator)
             np.testing.assert_array_equal(a.labels, randomised.labels)
             np.testing.assert_array_equal(a.K, randomised.K)
         assert {7, 8} & set(np.unique(a.labels).tolist())  # a pallet in view (Pickup mounts)
@@ -180,9 +183,9 @@ def test_camera_effects_are_seeded_and_keep_labels_depth_and_image_aligned():
         assert a.rgb is not None and a.rgb.shape == (480, 640, 3) and a.labels is not None
         assert set(np.unique(a.labels).tolist()) <= {0, 1, 7}  # nearest-neighbour labels: no new classes
         assert np.all(a.depth == 2.0)
-        if "lens_distortion_true" in a.truth:
+        if a.dist is not None:
             distorted += 1
-            k1 = a.truth["lens_distortion_true"][0]
+            k1 = a.dist[0]
             assert -0.3 <= k1 <= 0.05 and a.K[0, 0] >= bundle.K[0, 0]  # zoomed in, never out
             assert a.labels[230, 325] == SemanticClass.PALLET_EMPTY  # near the principal point: in place
         else:
@@ -248,3 +251,23 @@ def test_wide_mounts_reach_level_low_and_high_views_of_the_same_scene():
     assert min(heights) < 0.3 and max(heights) > 1.0 and min(tilts) < 10.0 and max(tilts) > 45.0
     frame = render_frame(2, seed=5, mounts="wide", realism=True)
     assert frame.rgb is not None and frame.rgb.shape == (480, 640, 3)
+
+
+def test_a_distorted_realism_frame_undistorts_back_to_its_render():
+    import cv2
+
+    from palletpilot.perception.distortion import undistort_bundle
+
+    real = render_frame(5, seed=5, realism=True, mounts="pickup")
+    assert real.dist is not None and real.dist[0] < -0.1  # this frame has strong barrel distortion
+    render = render_frame(5, seed=5, randomise=True, mounts="pickup")
+    back = undistort_bundle(real)  # perception's own undistortion, to the zoomed K
+    zoom, cx, cy = back.K[0, 0] / render.K[0, 0], render.K[0, 2], render.K[1, 2]
+    zoomed = cv2.warpAffine(
+        render.labels,
+        np.array([[zoom, 0, cx - zoom * cx], [0, zoom, cy - zoom * cy]]),
+        (640, 480),
+        flags=cv2.INTER_NEAREST,
+    )
+    seen = back.labels != 255
+    assert seen.mean() > 0.95 and (back.labels == zoomed)[seen].mean() > 0.99
