@@ -142,11 +142,12 @@ def test_a_labeller_that_finds_every_front_meets_the_goals(tmp_path):
     assert r["photos_all_covered"] == 1
 
 
-def test_the_command_runs_the_shipped_model(tmp_path, capsys):
+@pytest.mark.parametrize("fit", ["squash", "tiles"])
+def test_the_command_runs_the_shipped_model(tmp_path, capsys, fit):
     root = make_set(tmp_path)
-    assert main(["bench", "--json", "realdata", str(root), "--limit", "1", "--threads", "1"]) == 0
+    assert main(["bench", "--json", "realdata", str(root), "--limit", "1", "--threads", "1", "--fit", fit]) == 0
     r = json.loads(capsys.readouterr().out)
-    assert r["photos"] == 1 and r["fronts"] == 2 and r["image_sizes"] == {f"{W}x{H}": 1}
+    assert r["photos"] == 1 and r["fronts"] == 2 and r["image_sizes"] == {f"{W}x{H}": 1} and r["fit"] == fit
     assert 0.0 <= r["front_recall"] <= 1.0 and "SHA-256" in r["model"]
 
 
