@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import Field
 
 from palletpilot.geometry.fileio import FileModel, parse_json, read_text, validate_model, write_json
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.errors import CalibrationError, PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pointcloud import check_intrinsics
@@ -148,6 +149,7 @@ def measure_depth_tare(frames: Sequence[FrameBundle], distance_m: float, limits:
     all_rays, all_inv = [], []
     total = 0
     for i, frame in enumerate(frames):
+        frame = undistort_bundle(frame)  # rays from K alone (`perception.distortion`)
         check_intrinsics(frame.K, f"frame {i}: K")
         rays, z = _region_rays(frame, limits.roi)
         total += len(z)

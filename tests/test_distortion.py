@@ -308,3 +308,14 @@ def test_realsense_models_perception_cannot_express_are_refused() -> None:
         opencv_distortion(rs, _intrinsics(rs, "kannala_brandt4", [0.1, 0.0, 0.0, 0.0, 0.0]), "cam")
     with pytest.raises(PerceptionError, match=r"fitted to librealsense's projection miss it by"):
         opencv_distortion(rs, _intrinsics(rs, "inverse_brown_conrady", [0.1, -0.05, 0.01, -0.02, 0.03]), "cam")
+
+
+def test_ros_camera_info_distortion_models() -> None:
+    from palletpilot.executor.ros.camera import _distortion
+
+    assert _distortion("plumb_bob", [0.0] * 5, "info") is None  # all zero: an ideal pinhole
+    d = _distortion("plumb_bob", [-0.05, 0.06, 0.0, 0.0, -0.02], "info")
+    assert d is not None and d.dtype == np.float64 and len(d) == 5
+    assert _distortion("rational_polynomial", [0.1] * 8, "info") is not None
+    with pytest.raises(PerceptionError, match="equidistant"):
+        _distortion("equidistant", [0.1, 0.0, 0.0, 0.0], "info")

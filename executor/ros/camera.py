@@ -186,6 +186,7 @@ class RosCamera:
         bundle = FrameBundle(
             depth=image_to_depth(depth),
             K=K,
+            dist=_distortion(info.msg.distortion_model, list(info.msg.d), self.config.camera.info.name),
             rgb=image_to_rgb(color),
             fork_height=self.fork_height(),
             stamp_s=self.now() - (time.monotonic() - received),
@@ -196,6 +197,23 @@ class RosCamera:
 
     def close(self) -> None:
         """Nothing to release (the transport owns the subscriptions)."""
+
+
+OPENCV_MODELS = ("plumb_bob", "rational_polynomial", "")
+"""camera_info distortion models whose `d` is OpenCV's coefficients ("": unset, realsense-ros before 4.x)."""
+
+
+def _distortion(model: str, d: list[float], topic: str) -> np.ndarray | None:
+    """The frame's `dist` from a camera_info's `distortion_model` and `d` (None: no distortion); a model
+    perception does not undistort (fisheye `equidistant`) is refused with a `PerceptionError`."""
+    if not any(d):
+        return None
+    if model not in OPENCV_MODELS or len(d) not in (4, 5, 8, 12, 14):
+        raise PerceptionError(
+            f"camera: {topic}: distortion_model '{model}' with {len(d)} coefficients is not undistorted here "
+            f"(use {' or '.join(m for m in OPENCV_MODELS if m)}, or the rectified image)"
+        )
+    return np.array(d, dtype=np.float64)
 
 
 class RealSenseCamera:
