@@ -35,7 +35,10 @@ fused as the Pickup fuses them):
 - `film`: the same wrapped in stretch film (load and top deck);
 - `mismatch`: the estimator is told another type than it sees (EUR seeing a 1200 x 1000 from either
   side, a half or a plastic pallet; an industrial or a half pallet seeing a EUR): every frame must
-  give `PalletNotFound`.
+  give `PalletNotFound`;
+- `block_2pocket` (issue 37): off-nominal two-pocket block pallets with an 800 mm face, each drawn
+  inside the `block_2pocket_800` family (`drawn_block_pallet`: columns 85-155 mm, pockets 205-275 mm
+  wide and 97-127 mm high) and built to +-5 mm, the estimator told the family, which measures them.
 
 Per family: detection rate (standpoints with an estimate), reasons not found (per frame), and for the
 fused estimates (`per_estimate`, what the Pickup acts on) and the single frames (`per_frame`) the
@@ -49,11 +52,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import importlib
+import json
 import math
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,7 +69,7 @@ from palletpilot.bench.pallet_coverage import Honesty
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, SE3
-from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.fileio import bundled_path, write_atomic
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import FramePolicy, PalletEstimate, PalletNotFound, estimate_pallet, fuse_estimates
@@ -91,6 +98,7 @@ FAMILIES = (
     "overhang",
     "film",
     "mismatch",
+    "block_2pocket",
 )
 """Pallet families of `--families`."""
 FAMILY_GOALS = {"lateral_mm_p95": 10.0, "yaw_deg_p95": 0.5, "wrong_pose": 0, "coverage": 0.90}
@@ -494,10 +502,38 @@ def family_spec(family: str, spec: FrameSpec, k: int) -> tuple[FrameSpec, str]:
     elif family == "mismatch":
         seen, told = MISMATCHES[k % len(MISMATCHES)]
         extra["type"] = seen
-    if extra.get("type") not in (None, "eur") and spec.node.startswith("rack"):
+    elif family == "block_2pocket":  # an 800 mm face: rack slots take it
+        extra = {"type": drawn_block_pallet(rng), "tolerance_m": 0.005, "tolerance_seed": spec.seed}
+        told = "block_2pocket_800"
+    if extra.get("type") not in (None, "eur") and family != "block_2pocket" and spec.node.startswith("rack"):
         # Wider pallets stand on the floor (a rack slot is 0.9 m wide); same misplacement otherwise.
         spec = dataclasses.replace(spec, node=spec.node.replace("rack", "floor"))
     return dataclasses.replace(spec, loaded=loaded, pallet=tuple(extra.items())), told
+
+
+def drawn_block_pallet(rng: np.random.Generator) -> str:
+    """A pallet type file (its path) of an off-nominal two-pocket block pallet with an 800 mm face, drawn
+    inside the `block_2pocket_800` family: outer columns 85-150 mm (equal, as pallets are designed; the
+    family bench adds +-5 mm build tolerance), middle 85-155 mm, pockets 205-275 mm wide and 97-127 mm
+    high. Written once per drawing to the temp folder."""
+    while True:
+        outer, middle = (float(v) for v in rng.uniform((0.085, 0.085), (0.150, 0.155)))
+        if 0.205 <= 0.4 - outer - 0.5 * middle <= 0.275:
+            break
+    block_height = round(float(rng.uniform(0.075, 0.105)), 4)
+    columns = [round(c, 4) for c in (outer, middle, outer)]
+    doc = {
+        "name": "block " + "/".join(f"{1e3 * c:.0f}" for c in columns) + f" h{1e3 * block_height:.0f}",
+        "block_columns": columns,
+        "block_height": block_height,
+        "height": round(0.022 * 3 + block_height, 4),
+    }
+    text = json.dumps(doc)
+    name = hashlib.sha1(text.encode()).hexdigest()[:16]
+    path = Path(tempfile.gettempdir()) / "palletpilot-bench-pallets" / f"{name}.json"
+    if not path.exists():
+        write_atomic(path, text)
+    return str(path)
 
 
 def _wrong(family: str, errs: list, sigmas: list | None = None) -> tuple[int, int]:

@@ -414,6 +414,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "palletpilot.executor.cli_capture",
         "palletpilot.executor.cli_forks",
         "palletpilot.executor.cli_pallet",
+        "palletpilot.executor.cli_pallet_measure",
         "palletpilot.executor.cli_perception",
         "palletpilot.executor.cli_replay",
         "palletpilot.executor.ros.cli_robot",

@@ -8,7 +8,14 @@ past the volume's far end. Something there holds the task: the check repeats eve
 `RECHECK_S` while the truck stands, and after `Settings.blocked_wait_s` the task fails, `path_blocked`
 before a pickup, `slot_occupied` before a delivery. Nothing has moved by then.
 
-Public API: `CheckVolume`, `entry_volume`, `entry_volume_at`, `slot_volume`, `RECHECK_S`, `MIN_SEEN`.
+A pallet of a family (`perception.pallet_family`: its pockets vary within ranges) is entered only where
+the forks fit the pockets the estimate *measured* (`pocket_fit_problems`, `entry_pocket_fit`: each fork
+`POCKET_SIDE_MARGIN_M` inside its pocket at the entry face and at the tips' depth, the fork tops
+`POCKET_TOP_CLEARANCE_M` under the pocket top); else `safety_check_failed` with the figures, before any
+move. `CheckVolume(..., fit=entry_pocket_fit)` runs it first.
+
+Public API: `CheckVolume`, `entry_volume`, `entry_volume_at`, `slot_volume`, `pocket_fit_problems`,
+`entry_pocket_fit`, `RECHECK_S`, `MIN_SEEN`, `POCKET_SIDE_MARGIN_M`, `POCKET_TOP_CLEARANCE_M`.
 """
 
 from __future__ import annotations
@@ -17,10 +24,11 @@ import math
 from collections.abc import Callable
 
 from palletpilot.executor.behaviour import Behaviour, Context
-from palletpilot.executor.errors import TaskFailed
+from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
 from palletpilot.geometry import SE2
 from palletpilot.perception.clearance import Volume, VolumeCheck
-from palletpilot.perception.specs import ENTRY_GAP_M, pallet_pose_at_node
+from palletpilot.perception.pallet import PalletEstimate
+from palletpilot.perception.specs import ENTRY_GAP_M, ForkGeometry, PalletType, pallet_pose_at_node
 
 RECHECK_S = 1.0
 """s between two looks while the volume is not free."""
@@ -29,6 +37,11 @@ MIN_SEEN = 0.5
 """The camera must see at least this share of a volume for its check to count."""
 
 _STANDING = 1e-3  # m/s
+
+POCKET_SIDE_MARGIN_M = 0.010
+"""Each fork's sides must stay this far (m) inside its measured pocket (localization and control errors)."""
+POCKET_TOP_CLEARANCE_M = 0.010
+"""The fork tops must pass this far (m) under the measured pocket top (the deck sags under a load)."""
 
 
 def _half_corridor(ctx: Context) -> float:
@@ -75,14 +88,81 @@ def slot_volume(ctx: Context) -> tuple[Volume, float] | None:
     return volume, far - ctx.forks.tip_x - ctx.settings.beam_margin
 
 
+def pocket_fit_problems(
+    forks: ForkGeometry,
+    pallet: PalletType,
+    estimate: PalletEstimate,
+    T_pallet_forklift: SE2,
+    fork_clearance: float,
+    side_margin: float = POCKET_SIDE_MARGIN_M,
+    top_clearance: float = POCKET_TOP_CLEARANCE_M,
+) -> list[str]:
+    """Where the forks would not fit the pockets `estimate` measured, entering straight ahead from
+    `T_pallet_forklift` (the truck in the pallet frame, SE2) with the fork bottoms `fork_clearance` (m)
+    above the pallet's underside: one line per problem with the figures (mm). Laterally each fork, at the
+    entry face and at the tips' depth, must keep `side_margin` inside its pocket (`pocket_widths_m`,
+    `pocket_centres_y_m`, pallet frame); vertically its top must pass `top_clearance` under the measured
+    pocket height (`extras["pocket_height_m"]`; where it was not measured, the family's lowest)."""
+    problems = []
+    depth = min(pallet.length, forks.length)
+    c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
+    names = ("left", "right")
+    for name, fork_y, pocket_y, width in zip(
+        names, forks.centres_y, estimate.pocket_centres_y_m, estimate.pocket_widths_m, strict=True
+    ):
+        origin = T_pallet_forklift.apply([0.0, fork_y])
+        if abs(c) < 1e-6:
+            problems.append(f"the {name} fork would run across the pallet (turned 90 deg to it)")
+            continue
+        # the fork's centre line along the truck's x, at the face and at the tips' depth
+        ys = [origin[1] + (x - origin[0]) * s_ / c for x in (0.0, depth)]
+        worst = min(0.5 * width - abs(y - pocket_y) - 0.5 * forks.width for y in ys)
+        if worst < side_margin:
+            where = f"pass {-1e3 * worst:.0f} mm beside" if worst < 0 else f"keep {1e3 * worst:.0f} mm inside"
+            problems.append(
+                f"the {name} fork ({1e3 * forks.width:.0f} mm wide) would {where} its measured pocket "
+                f"({1e3 * width:.0f} mm wide at y = {1e3 * pocket_y:+.0f} mm), less than the "
+                f"{1e3 * side_margin:.0f} mm margin"
+            )
+    height = estimate.extras.get("pocket_height_m")
+    measured = height is not None
+    if height is None:
+        height = pallet.bounds("pocket_height")[0]
+    top = fork_clearance + forks.thickness + top_clearance
+    if top > height:
+        problems.append(
+            f"the forks ({1e3 * forks.thickness:.0f} mm thick, {1e3 * fork_clearance:.0f} mm above the underside) "
+            f"and {1e3 * top_clearance:.0f} mm clearance need {1e3 * top:.0f} mm, the pockets are "
+            f"{1e3 * height:.0f} mm high ({'measured' if measured else 'the family lowest'})"
+        )
+    return problems
+
+
+def entry_pocket_fit(ctx: Context) -> list[str]:
+    """`pocket_fit_problems` for the Pickup's pallet from where the truck stands (none for an exact pallet
+    type, whose pockets `SafetyCheck` checks, or without an estimate)."""
+    if ctx.pallet_type.family is None or ctx.estimate is None or ctx.estimated_pallet is None:
+        return []
+    T_pallet_forklift = ctx.estimated_pallet.to_se2().inv() @ ctx.vehicle.localization()
+    return pocket_fit_problems(ctx.forks, ctx.pallet_type, ctx.estimate, T_pallet_forklift, ctx.settings.fork_clearance)
+
+
 class CheckVolume(Behaviour):
     """Stand and make sure a volume ahead of the forks is free (camera, else beams); hold while it is not,
-    fail with `reason` after `Settings.blocked_wait_s`."""
+    fail with `reason` after `Settings.blocked_wait_s`. With `fit` (e.g. `entry_pocket_fit`), first fail
+    with `safety_check_failed` where it names a problem (the forks would not fit the pockets)."""
 
-    def __init__(self, volume: Callable[[Context], tuple[Volume, float] | None], reason: str, what: str) -> None:
+    def __init__(
+        self,
+        volume: Callable[[Context], tuple[Volume, float] | None],
+        reason: str,
+        what: str,
+        fit: Callable[[Context], list[str]] | None = None,
+    ) -> None:
         self.volume = volume
         self.reason = reason
         self.what = what
+        self.fit = fit
 
     def start(self, ctx: Context) -> None:
         ctx.vehicle.stop()
@@ -94,6 +174,10 @@ class CheckVolume(Behaviour):
         if abs(ctx.vehicle.speed) > _STANDING or ctx.now() < self.next_look:
             ctx.vehicle.stop()
             return None
+        problems = self.fit(ctx) if self.fit is not None else []
+        if problems:
+            ctx.log("pocket_fit", what=self.what, problems=problems)
+            raise TaskFailed(SAFETY_CHECK_FAILED, "; ".join(problems))
         spec = self.volume(ctx)
         if spec is None:
             ctx.log("entry_check", what=self.what, skipped="no room between the forks and the target")

@@ -34,7 +34,9 @@ Method, in the forklift frame with the camera at `calibration.T_forklift_camera_
    to the plane fit; off by default, see `PalletEstimatorConfig`.)
 4. **Pockets.** Each inner block-column edge is searched on its own: the two gaps give the pocket
    widths and centres, which must match the pallet type (else `PalletNotFound`), and the lateral
-   centre is the mean of the two pocket centres.
+   centre is the mean of the two pocket centres. A family type (`perception.pallet_family`) has all
+   six column edges searched over its ranges instead: the face, columns and pockets are measured and
+   must lie within the ranges, and the measured face replaces the nominal one (`_family_face`).
 
 5. **Deck.** Where the camera sees the top deck (an empty pallet from above), the deck boards' side
    edges, lines along the whole pallet length, refine the yaw (`_deck_yaw`): each deck pixel is
@@ -120,6 +122,8 @@ from palletpilot.perception.pallet_model import (
     _check_pockets,
     _check_sides,
     _cost,
+    _family_edges,
+    _family_face,
     _initial_underside,
     _layer_delta,
     _Model,
@@ -259,11 +263,17 @@ def _estimate(
     band = (hr >= 0.3 * model.block_top) & (hr <= 0.9 * model.block_top) & steady
     _check_sides(model, cfg, fc, all_rays.labelled, s0, z0, band, sigma, footprint)
     edges = _pocket_edges(model, fc, s0, band, sigma, footprint, cfg)
+    sides = edges if len(edges) == 6 else None  # a family: all six column edges, measured
+    edges = edges[1:5] if sides is not None else edges
     right_w, left_w = edges[1] - edges[0], edges[3] - edges[2]
     right_c, left_c = 0.5 * (edges[0] + edges[1]), 0.5 * (edges[2] + edges[3])
-    _check_pockets(model, cfg, fc, s0, z0, band, sigma, (left_w, right_w), (left_c, right_c))
+    face = model if sides is None else model.measured(sides, None)
+    _check_pockets(face, cfg, fc, s0, z0, band, sigma, (left_w, right_w), (left_c, right_c), footprint)
     centre_offset = 0.5 * (left_c + right_c)  # pocket-based centre relative to the model fit
     s0 += centre_offset
+    if sides is not None:  # the measured face (relative to the pockets' centre) replaces the nominal one
+        model, z0, measured = _family_face(model, sides, centre_offset, z0, footprint)
+        found = {**found, **measured}
     pocket_resid = np.array(
         [left_c - centre_offset - model.pocket_centres[0], right_c - centre_offset - model.pocket_centres[1]]
     )
@@ -630,8 +640,11 @@ def _pocket_edges(
 ) -> list[float]:
     """Step 4: the four inner block-column edges (pallet y, m), each searched on its own.
 
-    Right pocket (its right then left edge), then the left pocket.
+    Right pocket (its right then left edge), then the left pocket. A family (`model.ranges`): all six
+    column edges, right to left, each searched over its range (`_family_edges`).
     """
+    if model.ranges is not None:
+        return _family_edges(model, fc, s0, band, sigma, cfg)
     trunc = cfg.truncation_sigma
     edges = []
     inner = [(0, 1), (1, 0), (1, 1), (2, 0)]  # (column, side): right pocket then left pocket

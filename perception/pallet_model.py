@@ -17,6 +17,7 @@ Package-internal API (used by `perception.pallet`, `perception.pallet_deck`):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,9 @@ import numpy as np
 from palletpilot.perception.pallet_estimate import PalletEstimatorConfig, PalletNotFound
 from palletpilot.perception.pallet_face import _FaceCoords
 from palletpilot.perception.specs import PalletType
+
+FAMILY_DIMENSIONS = ("width", "block_columns", "pocket_width", "pocket_height")
+"""The dimensions a family's ranges may set (`perception.pallet_family.FamilyRanges`)."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,7 @@ class _Model:
     pocket_floor: float = 0.0  # top of a perimeter bottom board across the pockets (0: open to the floor)
     bottom_top: float = 0.0  # top of the bottom boards (0: legs)
     runners: bool = True  # bottom boards under the block columns (else across the rows, or none)
+    ranges: dict[str, tuple[float, float]] | None = None  # a family's (lowest, highest) per dimension; None: exact
 
     @classmethod
     def of(cls, p: PalletType) -> _Model:
@@ -66,6 +71,24 @@ class _Model:
             pocket_floor=p.pocket_floor,
             bottom_top=p.bottom_board_thickness,
             runners=p.bottom_boards == "runners",
+            ranges=None if p.family is None else {k: p.bounds(k) for k in FAMILY_DIMENSIONS},
+        )
+
+    def measured(self, edges: list[float], pocket_height: float | None) -> _Model:
+        """This model with the block columns at the six measured `edges` (pallet y, m, right to left) and, when
+        given, the pocket height (the layers above move with it)."""
+        cols = np.array(edges, dtype=float).reshape(3, 2)
+        rise = 0.0 if pocket_height is None else pocket_height - self.block_top
+        widths = (cols[1, 0] - cols[0, 1], cols[2, 0] - cols[1, 1])
+        return dataclasses.replace(
+            self,
+            columns=cols,
+            width=float(cols[2, 1] - cols[0, 0]),
+            block_top=self.block_top + rise,
+            cross_top=self.cross_top + rise,
+            height=self.height + rise,
+            pocket_width=float(0.5 * (widths[0] + widths[1])),
+            pocket_centres=np.array([0.5 * (cols[1, 1] + cols[2, 0]), 0.5 * (cols[0, 1] + cols[1, 0])]),
         )
 
     def bottom_segments(self) -> list[tuple[float, float]]:
@@ -267,8 +290,12 @@ def _check_pockets(
     sigma: float,
     widths: tuple[float, float],
     centres: tuple[float, float],
+    footprint_m: float = 0.0,
 ) -> None:
-    """Raise `PalletNotFound("pockets_inconsistent")` unless the gaps in the face match the pallet type."""
+    """Raise `PalletNotFound("pockets_inconsistent")` unless the gaps in the face match the pallet type.
+
+    For a family `model` is the measured face (`_Model.measured`): its pockets must be open, its columns
+    solid, and its dimensions within the family's ranges (`_check_family`, to a pixel `footprint_m`)."""
     s_rel = fc.s - s0
     # Occupancy: the middle of each pocket must see past the face, the middle of each column must be on it.
     res = fc.w - fc.nd / fc.D
@@ -292,6 +319,9 @@ def _check_pockets(
                 f"the block column at y = {0.5 * (lo + hi):+.3f} m of the {model.name} type is missing: "
                 f"{100 * float(on_face[m].mean()):.0f} % on the face",
             )
+    if model.ranges is not None:  # a family: the measured face (`_Model.measured`) within the ranges
+        _check_family(model, widths, footprint_m)
+        return
     for name, w in (("left", widths[0]), ("right", widths[1])):
         if abs(w - model.pocket_width) > cfg.pocket_width_tolerance_m:
             raise PalletNotFound(
@@ -329,13 +359,139 @@ def _check_sides(
     on_face = np.abs(res) < cfg.truncation_sigma * sigma
     past = ~np.isfinite(_wall_delta(s_rel, fc.t, model.columns, model.block_length))
     margin = max(0.015, 3.0 * footprint)
+    width = model.width if model.ranges is None else model.ranges["width"][1]  # a family: its widest face
     for name, sign in (("left", 1.0), ("right", -1.0)):
-        out = sign * s_rel - 0.5 * model.width
+        out = sign * s_rel - 0.5 * width
         m = band & labelled & past & (out >= margin) & (out <= margin + 0.06)
         if m.sum() >= 10 and float(on_face[m].mean()) > cfg.max_side_solid:
             raise PalletNotFound(
                 "type_mismatch",
                 f"the entry face continues past the {name} side of the {model.name} type's face "
-                f"({1e3 * model.width:.0f} mm wide): {100 * float(on_face[m].mean()):.0f} % of the pallet pixels "
+                f"({1e3 * width:.0f} mm wide): {100 * float(on_face[m].mean()):.0f} % of the pallet pixels "
                 "beyond it lie on the face",
             )
+
+
+# -- a family: the face measured within its ranges -------------------------------------------------------
+
+FAMILY_SEARCH_SLACK_M = 0.02
+"""Each family edge is searched this far (m) beyond where its ranges put it: the lateral centre it is
+searched from came from the nominal columns (a few millimetres off on an asymmetric face)."""
+
+
+FAMILY_TOLERANCE_M = 0.006
+"""A measured width may lie this far (m) plus a pixel footprint outside its family's range."""
+
+
+def _family_edge_ranges(model: _Model) -> list[tuple[float, float]]:
+    """Where (pallet y, m, right to left) each of the six block-column edges of a family may lie: the outer
+    sides from the face width, the inner edges from the column widths."""
+    assert model.ranges is not None
+    (w_lo, w_hi), (c_lo, c_hi) = model.ranges["width"], model.ranges["block_columns"]
+    return [
+        (-0.5 * w_hi, -0.5 * w_lo),
+        (-0.5 * w_hi + c_lo, -0.5 * w_lo + c_hi),
+        (-0.5 * c_hi, -0.5 * c_lo),
+        (0.5 * c_lo, 0.5 * c_hi),
+        (0.5 * w_lo - c_hi, 0.5 * w_hi - c_lo),
+        (0.5 * w_lo, 0.5 * w_hi),
+    ]
+
+
+def _family_edges(
+    model: _Model, fc: _FaceCoords, s0: float, band: np.ndarray, sigma: float, cfg: PalletEstimatorConfig
+) -> list[float]:
+    """Step 4 for a family: the six block-column edges (pallet y relative to `s0`, m, right to left), each
+    searched over its range (`_family_edge_ranges`, 2 mm then 0.25 mm steps), then once more within 6 mm
+    of the first answers with the other edges where they were found. Raises
+    `PalletNotFound("pockets_inconsistent")` where an edge has no pixels near it."""
+    trunc = cfg.truncation_sigma
+    cols = model.columns.copy()
+    for rnd in range(2):
+        for k, (lo, hi) in enumerate(_family_edge_ranges(model)):
+            col, side = divmod(k, 2)
+            if rnd == 0:
+                lo, hi = lo - FAMILY_SEARCH_SLACK_M, hi + FAMILY_SEARCH_SLACK_M
+            else:
+                lo, hi = cols[col, side] - 0.006, cols[col, side] + 0.006
+            idx = np.flatnonzero(band & (fc.s - s0 >= lo - 0.05) & (fc.s - s0 <= hi + 0.05))
+            if idx.size < 10:
+                raise PalletNotFound(
+                    "pockets_inconsistent", f"no pixels near the block edge at y = {0.5 * (lo + hi):+.3f} m"
+                )
+            s_rel, t = fc.s[idx][:, None] - s0, fc.t[idx][:, None]
+            grids = [np.arange(lo, hi + 1e-12, 0.002 if rnd == 0 else 0.00025)]
+            for g in range(2 if rnd == 0 else 1):
+                if g == 1:
+                    grids.append(cols[col, side] + np.arange(-0.0025, 0.0025 + 1e-12, 0.00025))
+                cols_h = np.broadcast_to(cols, (len(grids[g]), 3, 2)).copy()
+                cols_h[:, col, side] = grids[g]
+                cost = _cost(
+                    fc, idx, _wall_delta(s_rel, t, cols_h, model.block_length), model.block_length, sigma, trunc
+                )
+                cost[cols_h[:, col, 1] <= cols_h[:, col, 0] + 0.01] = np.inf  # a column turned inside out
+                cols[col, side], _ = _best(grids[g], cost)
+    return [float(v) for v in cols.reshape(-1)]
+
+
+def _check_family(model: _Model, widths: tuple[float, float], footprint: float) -> None:
+    """Raise `PalletNotFound("pockets_inconsistent")` where the measured face (`model`, from
+    `_Model.measured`) lies outside its family's ranges by more than a pixel `footprint` (m) and
+    `FAMILY_TOLERANCE_M` (a single frame places an edge to about a pixel; now and then 10 mm off at 2 m)."""
+    assert model.ranges is not None
+    tol = footprint + FAMILY_TOLERANCE_M
+    checks = [("face", "width", model.width)]
+    checks += [
+        (f"{n} block column", "block_columns", float(hi - lo))
+        for n, (lo, hi) in zip(("right", "middle", "left"), model.columns, strict=True)
+    ]
+    checks += [(f"{n} pocket", "pocket_width", w) for n, w in zip(("left", "right"), widths, strict=True)]
+    for what, key, value in checks:
+        lo, hi = model.ranges[key]
+        if not lo - tol <= value <= hi + tol:
+            raise PalletNotFound(
+                "pockets_inconsistent",
+                f"the {what} is {1e3 * value:.0f} mm wide, the {model.name} family's are "
+                f"{1e3 * lo:.0f}-{1e3 * hi:.0f} mm",
+            )
+
+
+def _family_face(
+    model: _Model, sides: list[float], centre_offset: float, z0: float, footprint: float
+) -> tuple[_Model, float, dict[str, object]]:
+    """A family's measured face: the model at the six measured column edges `sides` (pallet y relative
+    to the model fit's centre; the pallet's centre is `centre_offset` from it), the underside height `z0`
+    (m, forklift frame) and what was measured, for the estimate's extras.
+
+    The pocket top (`z0` plus the nominal pocket height: where step 3 found the pockets' upper edges) is
+    measured; the pocket height needs the floor under the pallet. A pallet whose nominal underside lies
+    within the family's pocket-height spread (and 2 cm) of the truck's floor (forklift z = 0) stands on
+    it: the pocket height is the pocket top's height, the underside is the floor, and the height must
+    lie within the range. Elsewhere (a rack beam) the pocket height is not measured (None: the Pickup
+    then takes the family's lowest).
+    """
+    assert model.ranges is not None
+    top = z0 + model.block_top
+    lo, hi = model.ranges["pocket_height"]
+    on_floor = abs(z0) <= max(hi - model.block_top, model.block_top - lo) + 0.02
+    height = top if on_floor else None
+    if height is not None:
+        tol = footprint + 0.005
+        if not lo - tol <= height <= hi + tol:
+            raise PalletNotFound(
+                "pockets_inconsistent",
+                f"the pockets are {1e3 * height:.0f} mm high, the {model.name} family's are "
+                f"{1e3 * lo:.0f}-{1e3 * hi:.0f} mm",
+            )
+        z0 = 0.0
+    face = model.measured([v - centre_offset for v in sides], height)
+    cols = face.columns
+    measured: dict[str, object] = {
+        "family": model.name,
+        "face_width_m": round(face.width, 5),
+        "block_columns_m": [round(float(b - a), 5) for a, b in cols],
+        "column_edges_y_m": [round(float(v), 5) for v in cols.reshape(-1)],
+        "pocket_height_m": None if height is None else round(height, 5),
+        "pocket_top_z_m": round(top, 5),
+    }
+    return face, z0, measured

@@ -28,6 +28,7 @@ from pydantic_core import PydanticCustomError
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.pallet_family import FamilyRanges, PalletFamily
 
 _MM = 5e-4  # tolerance (m) when checking that dimensions add up
 
@@ -343,6 +344,10 @@ class PalletType(FileModel):
         0.022, description="bottom boards (runners: under each block column; perimeter: under each block row)"
     )
     height: _Number = Field(0.144, description="total height (m); must equal the sum of the layers")
+    family: PalletFamily | None = Field(
+        None, description="a family whose entry side varies within `ranges` (perception.pallet_family); none: exact"
+    )
+    ranges: FamilyRanges | None = Field(None, description="the family's ranges (m) around the fields above")
 
     @field_validator(*(k for k in PALLET_RANGES_M if k != "bottom_board_thickness"))
     @classmethod
@@ -410,6 +415,44 @@ class PalletType(FileModel):
                 )
         return height
 
+    @field_validator("family")
+    @classmethod
+    def _family_fits(cls, family: str | None, info: ValidationInfo) -> str | None:
+        if family is not None and info.data.get("bottom_boards") == "perimeter":
+            raise PydanticCustomError(
+                "family", f"{family}: its pockets are open to the floor; bottom_boards must be runners or none"
+            )
+        return family
+
+    @field_validator("ranges")
+    @classmethod
+    def _ranges_hold_the_type(cls, ranges: FamilyRanges | None, info: ValidationInfo) -> FamilyRanges | None:
+        if "family" not in info.data:
+            return ranges  # the family's own problem is reported
+        family = info.data["family"]
+        if (ranges is None) != (family is None):
+            raise PydanticCustomError(
+                "family",
+                "needed with a family (the dimensions that vary, each [lowest, highest] m)"
+                if ranges is None
+                else "only with a family (family: block_2pocket); an exact type has none",
+            )
+        d = info.data
+        if ranges is None or not all(k in d for k in ("width", "block_columns", "bottom_board_thickness")):
+            return ranges
+        pocket = 0.5 * (d["width"] - sum(d["block_columns"]))
+        problems = ranges.nominal_problems(
+            {
+                "width": (d["width"],),
+                "block_columns": tuple(d["block_columns"]),
+                "pocket_width": (pocket,),
+                "pocket_height": (d["bottom_board_thickness"] + d["block_height"],),
+            }
+        )
+        if problems:
+            raise PydanticCustomError("dimensions", "; ".join(p.removeprefix("ranges.") for p in problems))
+        return ranges
+
     @model_validator(mode="after")
     def _closed_deck_has_no_boards(self) -> PalletType:
         if self.deck == "closed" and "top_board_widths" in self.model_fields_set:
@@ -427,6 +470,18 @@ class PalletType(FileModel):
         return cls()
 
     # -- derived ------------------------------------------------------------------------
+    def bounds(self, name: str) -> tuple[float, float]:
+        """(lowest, highest) (m) of `width`, `block_columns` (each), `pocket_width` or `pocket_height`:
+        the family's range, else the type's own value (for the columns, the narrowest and widest)."""
+        own = {
+            "width": (self.width, self.width),
+            "block_columns": (min(self.block_columns), max(self.block_columns)),
+            "pocket_width": (self.pocket_width, self.pocket_width),
+            "pocket_height": (self.pocket_height, self.pocket_height),
+        }[name]
+        value = None if self.ranges is None else getattr(self.ranges, name)
+        return own if value is None else (float(value[0]), float(value[1]))
+
     @property
     def pocket_width(self) -> float:
         """Width (m) of each of the two pockets along y."""
@@ -582,12 +637,28 @@ BUILTIN_PALLETS: dict[str, dict[str, object]] = {
         "bottom_board_thickness": 0.02,
         "height": 0.16,
     },
+    "block_2pocket_800": {
+        "name": "two-pocket block pallet, 800 mm face",
+        "block_columns": (0.100, 0.120, 0.100),
+        "family": "block_2pocket",
+        "ranges": {
+            "width": (0.795, 0.805),
+            "block_columns": (0.080, 0.160),
+            "pocket_width": (0.200, 0.280),
+            "pocket_height": (0.095, 0.130),
+        },
+    },
 }
 """The built-in pallet types by name (fields that differ from EUR/EPAL). `missions/pallet_*.yaml` hold
 the same types as files: `industrial` is a 1200 x 1000 block pallet entered on its 1000 side,
 `industrial_long` the same pallet entered on its 1200 side (deck boards and bottom boards then run
 across the entry), `half` an 800 x 600 pallet entered on its 600 side, `plastic` a 1200 x 800
-plastic pallet with a closed deck on nine legs and three runners."""
+plastic pallet with a closed deck on nine legs and three runners. `block_2pocket_800` is a family
+(`perception.pallet_family`): any two-pocket block pallet entered on an 800 mm face (ISO 6780 and EPAL:
+800 mm, built to +-3..5 mm), block columns 80-160 mm (half pallets' 80 mm to the chemical-industry
+pallets' 155 mm middle support; EPAL 100 / 145 / 100), pockets 200-280 mm wide (EPAL 227.5 mm, one-way
+pallets about 256 mm) and 95-130 mm high (ISO 6780: fork openings at least 95 mm high where free, EPAL
+100 mm); the nominal EPAL-like geometry (100 / 120 / 100 mm columns) only seeds the face fit."""
 PALLET_ALIASES = {"epal": "eur", "eur/epal": "eur"}
 PALLET_NAMES = (*BUILTIN_PALLETS, *PALLET_ALIASES)
 """Names of the built-in pallet types, any case."""
