@@ -1,6 +1,7 @@
 """`palletpilot segment ...`: segmentation datasets, evaluation and timing (wired in by `executor.cli`).
 
-- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup] [--randomise [novel]]`:
+- `palletpilot segment dataset OUT_DIR --frames N [--seed S] [--start K] [--mounts all|pickup|wide]
+  [--randomise [novel|real]]`:
   render simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`; `--randomise`:
   domain randomisation of colours, pallet types and light; `--randomise novel`: looks it never draws, for testing);
 - `palletpilot segment train DATA_DIR [DATA_DIR ...] [--init M.onnx] --out OUT.onnx [--steps N | --minutes M]
@@ -45,6 +46,7 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
         mounts=args.mounts,
         randomise=args.randomise is not None,
         novel=args.randomise == "novel",
+        realism=args.randomise == "real",
     )
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
     return EXIT_OK
@@ -132,18 +134,21 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     ds.add_argument("--start", type=count(0), default=0, help="index of the first frame (to extend a dataset)")
     ds.add_argument(
         "--mounts",
-        choices=("all", "pickup"),
+        choices=("all", "pickup", "wide"),
         default="all",
-        help="camera mounts: all (tilt 15-40 deg) or only those fit for the Pickup (calibrate's view check)",
+        help="camera mounts: all (tilt 15-40 deg), only those fit for the Pickup (calibrate's view check), or "
+        "wide (0.08-1.6 m high, tilt 0-60 deg: the views of real photos)",
     )
     ds.add_argument(
         "--randomise",
         nargs="?",
         const="standard",
         default=None,
-        choices=("standard", "novel"),
+        choices=("standard", "novel", "real"),
         help="domain randomisation: colours of floor, racks, pallets and loads, pallet types, light and exposure; "
-        "'novel': looks the standard randomisation never draws (to test a model on unseen looks)",
+        "'novel': looks the standard randomisation never draws (to test a model on unseen looks); 'real': the "
+        "standard one plus what real pallets and cameras show (worn boards, chip blocks, dirt, glare, "
+        "auto-exposure, lens distortion: sim.dataset_realism)",
     )
     ds.set_defaults(func=cmd_segment_dataset)
 
