@@ -271,3 +271,15 @@ def test_a_distorted_realism_frame_undistorts_back_to_its_render():
     )
     seen = back.labels != 255
     assert seen.mean() > 0.95 and (back.labels == zoomed)[seen].mean() > 0.99
+
+
+def test_segment_dataset_command_renders_real_looks_on_wide_mounts(tmp_path):
+    from palletpilot.cli import main
+
+    out = tmp_path / "real"
+    args = ["segment", "dataset", str(out), "--frames", "1", "--seed", "7", "--randomise", "real", "--mounts", "wide"]
+    assert main(args) == 0
+    written = load_bundle(out / "frame_00000.npz")
+    same = render_frame(0, seed=7, mounts="wide", realism=True)
+    np.testing.assert_array_equal(written.rgb, same.rgb)
+    assert (written.dist is None) == (same.dist is None)  # a lens distortion drawn travels with the frame
