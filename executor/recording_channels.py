@@ -80,6 +80,8 @@ WARNING_EVENTS = frozenset(
     {
         "calibration_failed",
         "calibration_warning",
+        "calibration_refused",
+        "calibration_axis_kept",
         "camera_mount_warning",
         "perception_result_discarded",
         "path_blocked_hold",
