@@ -42,7 +42,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from palletpilot.executor.cli_args import Parser, number, out_file, out_folder, seed
+from palletpilot.executor.cli_args import Parser, add_labels_argument, number, out_file, out_folder, seed
 from palletpilot.executor.cli_outcome import (
     EXIT_BAD_INPUT,
     EXIT_INTERNAL,
@@ -142,13 +142,13 @@ def cmd_sim_render(args: argparse.Namespace) -> int:
 
 
 def _labelled(frames: list, model: str | None) -> list:
-    """Frames with labels: those without are segmented by the ONNX model (the shipped one by default)."""
-    if all(f.labels is not None for f in frames):
+    """The frames, those without labels but with RGB segmented by the ONNX model (the shipped one by default)."""
+    if all(f.labels is not None or f.rgb is None for f in frames):
         return frames
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter, ensure_labels
 
     segmenter = OnnxSegmenter(model or DEFAULT_MODEL)
-    return [ensure_labels(f, segmenter) for f in frames]
+    return [ensure_labels(f, segmenter) if f.labels is None and f.rgb is not None else f for f in frames]
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -156,18 +156,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from palletpilot.perception.calibration import calibrate
     from palletpilot.perception.depth_tare import correct_depth, load_tare
     from palletpilot.perception.frames import load_bundles
+    from palletpilot.perception.labels_mode import LabelsMode
     from palletpilot.perception.specs import load_forks, pallet_type
     from palletpilot.perception.view import pickup_view
 
     problems: list[str] = []  # every problem of every input, before any work
     forks = collect(problems, lambda: load_forks(args.forks))
     pallet = collect(problems, lambda: pallet_type(args.pallet))
-    loaded = collect(problems, lambda: load_bundles(args.frames, need_labels=True))
+    mode = LabelsMode(args.labels)
+    loaded = collect(problems, lambda: load_bundles(args.frames, need_labels=mode == LabelsMode.MODEL))
     tare = collect(problems, lambda: load_tare(args.depth_tare)) if args.depth_tare else None
     raise_problems(problems)
     assert forks is not None and pallet is not None and loaded is not None
-    frames = _labelled([correct_depth(f, tare) for f in loaded], args.model)
-    calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames])
+    frames = [correct_depth(f, tare) for f in loaded]
+    if mode != LabelsMode.GEOMETRY:
+        frames = _labelled(frames, args.model)
+    calibration = calibrate(frames, forks, args.method, names=[str(p) for p in args.frames], labels=mode)
     h, w = frames[0].depth.shape
     view = pickup_view(calibration.T_forklift_camera, frames[0].K, (w, h), forks, pallet)
     problems = view.problems()
@@ -331,12 +335,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     run.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     run.add_argument("--report", type=out_folder, help="report folder (default out/run)")
     run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
-    run.add_argument(
-        "--labels",
-        choices=("model", "truth"),
-        default="model",
-        help="perception's labels: the shipped ONNX model on the RGB (default, as on a truck) or the simulator's",
-    )
+    add_labels_argument(run, sim=True)
     run.add_argument(
         "--perception",
         choices=("local", "remote", "serve-local"),
@@ -381,6 +380,7 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
         "--out", type=out_file(".json"), help="also write the JSON to this file (for estimate-pallet --calibration)"
     )
     cal.add_argument("--model", help="segmentation model for frames without labels (default: the shipped one)")
+    add_labels_argument(cal)
     cal.add_argument("--pallet", default="eur", help="pallet type for the pickup view check: eur or a YAML file")
     cal.add_argument(
         "--depth-tare", metavar="TARE.json", help="the camera's depth tare (`palletpilot camera tare`), applied first"

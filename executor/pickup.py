@@ -175,12 +175,15 @@ class EstimatePallet(Behaviour):
                 return None
             taken = self.frames[len(self.estimates) + len(self.errors) :]  # each estimated frame gave one of them
             expected, pallet = _expected_pallet(ctx), ctx.pallet_type
+            support = ctx.roadmap.node(ctx.pallet_node).height  # the floor, or the rack's beams
 
             def estimate() -> tuple[list[PalletEstimate], list[tuple[str, str]]]:
                 estimates, errors = [], []
                 for f, pose, _ in taken:
                     try:
-                        estimates.append(perception.estimate_pallet(f, calibration, pose, expected, pallet))
+                        estimates.append(
+                            perception.estimate_pallet(f, calibration, pose, expected, pallet, support_height_m=support)
+                        )
                     except PerceptionError as exc:
                         errors.append((str(getattr(exc, "reason", "")), str(exc)))
                 return estimates, errors

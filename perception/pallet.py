@@ -75,6 +75,7 @@ from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.distortion import undistort_bundle
 from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.perception.geometry_labels import (
     DEFAULT_ENVELOPE,
@@ -183,10 +184,18 @@ def estimate_pallet(
     """
     t_start = time.perf_counter()
     pallet = pallet or PalletType.eur()
+    frame = undistort_bundle(frame)  # an ideal pinhole image: every ray from K alone (`perception.distortion`)
     check_intrinsics(frame.K, "frame K")
     T_cf = calibration.T_forklift_camera_at(frame.fork_height)
     found = pallet_labels(
-        frame, T_cf, pallet, labels, expected=expected, support_height_m=support_height_m, envelope=envelope
+        frame,
+        T_cf,
+        pallet,
+        labels,
+        expected=expected,
+        support_height_m=support_height_m,
+        envelope=envelope,
+        depth_noise_k=config.depth_noise_k,
     )
     try:
         estimate = _estimate(dataclasses.replace(frame, labels=found.labels), T_cf, pallet, config, expected, found)
