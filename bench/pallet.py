@@ -72,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from palletpilot.bench.pallet_coverage import Honesty
+from palletpilot.bench.pallet_coverage import Honesty, crop_box
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, SE3
@@ -370,7 +370,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict:
     """Render the frames, run every requested case (or pallet family) and return the figures."""
     if getattr(args, "families", None):
-        return run_families(args)
+        if len(args.labels) == 1:
+            return run_families(args, args.labels[0])
+        return {f"labels={kind}": run_families(args, kind) for kind in args.labels}
     label_kinds, cal_kinds = args.labels, args.calibration
     labellers = {k: _labeller(k) for k in label_kinds}
     calibrators = {k: _calibrator(k) for k in cal_kinds}
@@ -657,13 +659,19 @@ def _meets_at_least(value: float | None, goal: float) -> bool:
     return value is not None and value >= goal
 
 
-def run_families(args: argparse.Namespace) -> dict:
-    """Every pallet family of `args.families` on `args.frames` standpoints, ground-truth labels and the
-    true calibration; per standpoint rounds of `args.frames_per_estimate` frames fused as the Pickup
-    fuses them (`FramePolicy`: another round while the fused yaw 1-sigma is above
+def run_families(args: argparse.Namespace, kind: str = "gt") -> dict:
+    """Every pallet family of `args.families` on `args.frames` standpoints, labels of `kind` (`LABEL_KINDS`)
+    and the true calibration; per standpoint rounds of `args.frames_per_estimate` frames fused as the
+    Pickup fuses them (`FramePolicy`: another round while the fused yaw 1-sigma is above
     `args.estimate_yaw_sigma_deg`, up to `args.max_frames_per_estimate` frames; no estimate where as
-    many frames refused the type as found it)."""
+    many frames refused the type as found it). Each frame is told where the pallet should stand
+    (`expected_at`), as the Pickup tells perception."""
     from palletpilot.perception.specs import pallet_type
+
+    labeller, why = _labeller(kind)
+    if labeller is None:
+        return {"available": False, "reason": why}
+    mode = _labels_mode(kind)
 
     specs = frame_specs(args.frames, args.seed, args.lateral, args.longitudinal, args.yaw_deg, tuple(args.ahead))
     per = args.frames_per_estimate
@@ -687,14 +695,17 @@ def run_families(args: argparse.Namespace) -> dict:
             render_s += time.perf_counter() - t0
             T_true = SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"])
             cal = Calibration(SE3.from_matrix(frames[0].truth["T_forklift_camera_true"]), "true")
+            expected, support = expected_at(spec)
+            seen = {"expected": expected, "labels": mode, "support_height_m": support}
             found: list[PalletEstimate] = []
             reasons: list[str] = []
             n_taken, more, first_round = 0, per, True
             while more:
-                for frame in frames:
+                for raw in frames:
+                    frame = labeller(raw)
                     t1 = time.perf_counter()
                     try:
-                        est = estimate_pallet(frame, cal, pallet_type(told))
+                        est = estimate_pallet(frame, cal, pallet_type(told), **seen)
                     except PalletNotFound as exc:
                         fails[exc.reason] = fails.get(exc.reason, 0) + 1
                         reasons.append(exc.reason)
@@ -707,7 +718,7 @@ def run_families(args: argparse.Namespace) -> dict:
                         sigmas.append((sp.y_m, sp.x_m, sp.yaw_rad))
                         honesty.add_frame(T_true, est)
                         if len(found) == 1 and family != "mismatch":
-                            honesty.add_crop(frame, cal, pallet_type(told), est)
+                            honesty.add_crop(frame, cal, pallet_type(told), est, crop_box(raw), **seen)
                 n_taken += len(frames)
                 verdict = policy.after_round(found, reasons, n_taken)  # as the Pickup decides
                 more = verdict.more
@@ -736,5 +747,6 @@ def run_families(args: argparse.Namespace) -> dict:
         "entry_face_ahead_m": list(args.ahead),
         "wrong_pose_limits": {"mm": WRONG_POSE_MM, "deg": WRONG_POSE_DEG, "single_frame_sigmas": WRONG_POSE_SIGMAS},
         "render_s": round(render_s, 1),
+        "labels": kind,
         "families": out,
     }

@@ -119,13 +119,19 @@ def crop_box(frame: FrameBundle, cut: float = CROP_CUT) -> tuple[slice, slice]:
 
 
 def crop_check(
-    frame: FrameBundle, calibration: Calibration, pallet: PalletType, full: PalletEstimate
+    frame: FrameBundle,
+    calibration: Calibration,
+    pallet: PalletType,
+    full: PalletEstimate,
+    box: tuple[slice, slice] | None = None,
+    **estimate: Any,
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
     """The disagreement (lateral, longitudinal m, yaw rad; forklift frame) between `full`, the estimate of
-    `frame`, and that of its crop (`crop_box`), and the larger of the two stated sigmas per axis; None
-    where the crop gives no estimate."""
+    `frame`, and that of its crop (`box`, default `crop_box(frame)`), and the larger of the two stated
+    sigmas per axis; None where the crop gives no estimate. `estimate`: more arguments of `estimate_pallet`
+    (the labels mode, where the pallet should stand), as `full` was estimated."""
     try:
-        cropped = estimate_pallet(crop_frame(frame, *crop_box(frame)), calibration, pallet)
+        cropped = estimate_pallet(crop_frame(frame, *(box or crop_box(frame))), calibration, pallet, **estimate)
     except PalletNotFound:
         return None
     diff = forklift_errors(full.T_forklift_pallet, cropped.T_forklift_pallet)
@@ -156,9 +162,17 @@ class Honesty:
         self.fused_errors.append(forklift_errors(T_true, est.T_forklift_pallet))
         self.fused_sigmas.append(stated_sigmas(est))
 
-    def add_crop(self, frame: FrameBundle, calibration: Calibration, pallet: PalletType, est: PalletEstimate) -> None:
+    def add_crop(
+        self,
+        frame: FrameBundle,
+        calibration: Calibration,
+        pallet: PalletType,
+        est: PalletEstimate,
+        box: tuple[slice, slice] | None = None,
+        **estimate: Any,
+    ) -> None:
         """The crop check (`crop_check`) of a frame and its estimate."""
-        got = crop_check(frame, calibration, pallet, est)
+        got = crop_check(frame, calibration, pallet, est, box, **estimate)
         if got is None:
             self.crop_misses += 1
             return
