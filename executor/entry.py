@@ -24,6 +24,7 @@ import math
 from collections.abc import Callable
 
 from palletpilot.executor.behaviour import Behaviour, Context
+from palletpilot.executor.calibration_trust import calibration_for_checks
 from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
 from palletpilot.geometry import SE2
 from palletpilot.perception.clearance import Volume, VolumeCheck
@@ -202,7 +203,10 @@ class CheckVolume(Behaviour):
 
     def _camera(self, ctx: Context, volume: Volume) -> VolumeCheck | bool | None:
         """The camera's look (False: no camera or calibration), or None when no frame came this tick."""
-        calibration = ctx.calibration or (ctx.perception.last_good if ctx.perception is not None else None)
+        # A trusted calibration where the truck has one (untrusted axes kept from it, `calibration_trust`);
+        # else the service's last good one: a look with a forward position a few cm off beats none.
+        last_good = ctx.perception.last_good if ctx.perception is not None else None
+        calibration = calibration_for_checks(ctx) or last_good
         if ctx.perception is None or calibration is None:
             return False
         frame = ctx.frame()
