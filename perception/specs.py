@@ -13,6 +13,9 @@ Every dimension read from a file is checked against a plausible range (`FORK_RAN
 numbers (a string or a boolean is refused), finite, and unknown keys are errors (`FileModel`). The
 fork tips must lie ahead of the truck and the heels near the forklift origin (`HEEL_X_RANGE_M`), so a
 tip far behind the truck or a fork kilometres long never reaches the calibration.
+
+A pallet type may declare a family (`family: block_2pocket`) and `ranges:` its entry side varies in
+around its own fields (`perception.pallet_family`); the estimator then measures the face within them.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ them, the entry check on the measured pockets, and `palletpilot pallet measure`.
 import argparse
 import json
 import math
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -172,6 +173,47 @@ def test_the_entry_check_refuses_before_entering_with_the_figures() -> None:
     assert events[0][0] == "pocket_fit"
     ctx.pallet_type = PalletType.eur()  # an exact type: its pockets are SafetyCheck's (nominal) business
     assert check.update(ctx) == "done"  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("columns", "result", "words"),
+    [((0.091, 0.108, 0.091), "succeeded", ""), ((0.13, 0.13, 0.13), "failed", "fork (160 mm wide) would ")],
+    ids=["one-way-255", "pockets-205"],
+)
+def test_a_family_pickup_enters_only_pockets_the_forks_fit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, columns: tuple, result: str, words: str
+) -> None:
+    import palletpilot.executor.tasks as tasks
+    from palletpilot.executor.app import run_simulated
+    from palletpilot.sim.scenario import load_scenario
+
+    # The entry check as `executor.tasks` wires it: the pickup's entry volume checks the pocket fit first.
+    class Entry(CheckVolume):
+        def __init__(self, volume, reason, what, fit=None) -> None:  # type: ignore[no-untyped-def]
+            super().__init__(volume, reason, what, fit=fit or (entry_pocket_fit if "entry" in what else None))
+
+    monkeypatch.setattr(tasks, "CheckVolume", Entry)
+    (tmp_path / "seen.yaml").write_text(yaml.safe_dump({"name": "seen", "block_columns": list(columns)}))
+    mission = {"name": "family", "map": str(MISSIONS / "warehouse.yaml"), "pallet_type": FAMILY}
+    mission["tasks"] = [{"type": "pickup", "node": "floor_b2"}]
+    (tmp_path / "mission.yaml").write_text(yaml.safe_dump(mission))
+    sc = yaml.safe_load((MISSIONS / "scenario_floor.yaml").read_text())
+    sc.update(map=str(MISSIONS / "warehouse.yaml"), forks=str(MISSIONS / "forks.yaml"), clutter=[])
+    sc["pallets"] = [{"node": "floor_b2", "dx": 0.10, "dy": -0.15, "dyaw_deg": 5, "type": str(tmp_path / "seen.yaml")}]
+    (tmp_path / "scenario.yaml").write_text(yaml.safe_dump(sc))
+    r = run_simulated(
+        tmp_path / "mission.yaml",
+        scenario=load_scenario(tmp_path / "scenario.yaml"),
+        report_dir=tmp_path / "report",
+        labels="truth",
+    )
+    task = json.loads((tmp_path / "report" / "report.json").read_text())["tasks"][0]
+    assert task["result"] == result and r.sim.collisions == [], task
+    if words:  # refused before entering, with the figures: the forks never reached the pallet
+        assert task["reason"] == "safety_check_failed" and words in task["message"], task
+        figures = r"its measured pocket \(20\d mm wide at y = [+-]1[67]\d mm\), less than the 10 mm margin"
+        assert re.search(figures, task["message"]), task["message"]
+        assert not r.sim.pallets[0].carried and not r.sim.pallets[0].lifted
 
 
 # -- palletpilot pallet measure -------------------------------------------------------------------------
