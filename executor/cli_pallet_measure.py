@@ -1,7 +1,8 @@
-"""`palletpilot pallet measure FRAME.npz [FRAME.npz ...] --calibration CAL.json [--family TYPE] --out TYPE.yaml`.
+"""`palletpilot pallet measure FRAME.npz [...] --calibration CAL.json [--family TYPE] [--labels MODE] --out TYPE.yaml`.
 
-Measures a pallet's entry side (face width, block columns, pocket widths and height) from labelled
-frame bundles of one pallet standing on the floor, its entry face towards the camera, within a family
+Measures a pallet's entry side (face width, block columns, pocket widths and height) from frame bundles
+of one pallet standing on the floor (pixels selected as `estimate-pallet` selects them: `--labels
+fused`, the default, `geometry` or `model`), its entry face towards the camera, within a family
 pallet type (`--family`, a built-in name or a file that declares `family:`; default
 `block_2pocket_800`), fuses the frames (median, with their scatter; `perception.pallet_measure`) and
 writes an exact pallet type file (atomically; validated before it is written) that `--pallet` and
@@ -19,7 +20,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from palletpilot.executor.cli_args import out_file
+from palletpilot.executor.cli_args import add_labels_argument, out_file
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import write_atomic
 from palletpilot.perception.errors import PerceptionError
@@ -30,8 +31,10 @@ DEFAULT_FAMILY = "block_2pocket_800"
 
 def cmd_pallet_measure(args: argparse.Namespace) -> int:
     """Check every input, measure the pallet, write the pallet type file."""
+    from palletpilot.executor.cli_pallet import _with_labels
     from palletpilot.perception.calibration_io import load_calibration
     from palletpilot.perception.frames import load_bundles
+    from palletpilot.perception.labels_mode import LabelsMode
     from palletpilot.perception.pallet_measure import measure_pallet, pallet_type_yaml
     from palletpilot.perception.specs import pallet_type
 
@@ -39,12 +42,17 @@ def cmd_pallet_measure(args: argparse.Namespace) -> int:
     family = collect(problems, lambda: pallet_type(args.family))
     if family is not None and family.family is None:
         problems.append(f"--family {args.family}: not a family pallet type (it declares no family: and ranges:)")
-    frames = collect(problems, lambda: load_bundles(args.frames, need_labels=True))
+    loaded = collect(problems, lambda: load_bundles(args.frames, need_labels=args.labels == "model"))
     calibration = collect(problems, lambda: load_calibration(args.calibration))
     raise_problems(problems, PerceptionError)
-    assert family is not None and frames is not None and calibration is not None
+    assert family is not None and loaded is not None and calibration is not None
     names = [str(p) for p in args.frames]
-    measured = measure_pallet(frames, calibration, family, names)
+    labelled = [
+        collect(problems, lambda f=f, n=n: _with_labels(f, n, args.labels)) for f, n in zip(loaded, names, strict=True)
+    ]
+    raise_problems(problems, PerceptionError)
+    frames = [f for f in labelled if f is not None]
+    measured = measure_pallet(frames, calibration, family, names, labels=LabelsMode(args.labels))
     name = args.name or f"measured {Path(args.out).stem}"
     try:
         new = measured.pallet_type(name)
@@ -81,6 +89,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         metavar="TYPE",
         help=f"family pallet type to measure within (built-in name or file; default {DEFAULT_FAMILY})",
     )
+    add_labels_argument(m)
     m.add_argument("--name", help="name of the written type (default: 'measured' and the file's stem)")
     m.add_argument("--out", required=True, type=out_file(".yaml", ".yml"), help="pallet type file to write (YAML)")
     m.add_argument("--json", action="store_true", help="print the measurement (mm) as JSON")

@@ -1,10 +1,11 @@
 """A pallet type measured from RGB-D frames of a pallet (`palletpilot pallet measure`, issue 37).
 
 The frames show one pallet standing on the floor the truck stands on, its entry face towards the
-camera (labelled frame bundles, as `estimate-pallet` takes them). Each frame is estimated with a family
-pallet type (`perception.pallet_family`; default `block_2pocket_800`): the estimator measures the six
-block-column edges within the family's ranges (pallet y, m), and the pockets' top above the floor
-(forklift z = 0 from the calibration): the pocket height. The frames are fused by the median of each
+camera (frame bundles, as `estimate-pallet` takes them; labels as the `labels` mode needs them).
+Each frame is estimated with a family pallet type (`perception.pallet_family`; the command's default
+`block_2pocket_800`): the estimator measures the six block-column edges within the family's ranges
+(pallet y, m), and the pockets' top above the floor (forklift z = 0 from the calibration): the pocket
+height. The frames are fused by the median of each
 edge and height; their scatter (sample standard deviation, m) is reported with them.
 
 The written type is exact (no family): face width, block columns (right, middle, left) and pocket
@@ -27,6 +28,7 @@ import numpy as np
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.labels_mode import LabelsMode
 from palletpilot.perception.pallet import DEFAULT_CONFIG, PalletEstimatorConfig, PalletNotFound, estimate_pallet
 from palletpilot.perception.specs import PalletType
 
@@ -104,17 +106,20 @@ def measure_pallet(
     family: PalletType,
     names: Sequence[str] | None = None,
     config: PalletEstimatorConfig = DEFAULT_CONFIG,
+    labels: LabelsMode = LabelsMode.MODEL,
 ) -> PalletMeasurement:
-    """Measure the pallet in `frames` (labelled, the pallet on the truck's floor) within `family` (a pallet
-    type with a family); `names` name the frames in messages. Raises `MeasureError` where no frame gives
-    the pallet on the floor (naming each frame's reason) and `PerceptionError` for a type without a family."""
+    """Measure the pallet in `frames` (the pallet on the truck's floor) within `family` (a pallet type with
+    a family); `labels` selects the pallet's pixels as `estimate_pallet` does (`model`: the frames' labels;
+    `geometry`: depth alone; `fused`: both); `names` name the frames in messages. Raises `MeasureError`
+    where no frame gives the pallet on the floor (naming each frame's reason) and `PerceptionError` for a
+    type without a family."""
     if family.family is None:
         raise PerceptionError(f"{family.name}: not a family pallet type (no family: and ranges:); give one")
     names = list(names) if names is not None else [f"frame {i}" for i in range(len(frames))]
     edges, heights, refused = [], [], {}
     for name, frame in zip(names, frames, strict=True):
         try:
-            est = estimate_pallet(frame, calibration, family, config=config)
+            est = estimate_pallet(frame, calibration, family, config=config, labels=labels)
         except PalletNotFound as exc:
             refused[name] = exc.detail
             continue

@@ -2,6 +2,7 @@
 them, the entry check on the measured pockets, and `palletpilot pallet measure`."""
 
 import argparse
+import dataclasses
 import json
 import math
 import re
@@ -253,6 +254,25 @@ def test_pallet_measure_recovers_the_pockets_and_the_type_finds_the_pallet(
     err = (SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"]).inv() @ est.T_forklift_pallet).to_se2()
     assert abs(err.y) < 0.006 and abs(math.degrees(err.yaw)) < 0.5
     assert "Measured by `palletpilot pallet measure`" in out.read_text()
+
+
+def test_pallet_measure_by_depth_alone(
+    oneway_frames: tuple[list[str], str, list[FrameBundle]], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    _, cal, frames = oneway_frames  # the same frames without labels or colour: geometry alone selects the pallet
+    bare = [
+        str(save_bundle(tmp_path / f"bare{i}.npz", dataclasses.replace(f, labels=None, rgb=None)))
+        for i, f in enumerate(frames)
+    ]
+    out = tmp_path / "oneway.yaml"
+    assert (
+        run(["pallet", "measure", *bare, "--calibration", cal, "--labels", "geometry", "--out", str(out), "--json"])
+        == 0
+    )
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["frames_used"] == 3 and all(abs(w - 255.0) <= 5.0 for w in doc["pocket_widths_mm"]), doc
+    with pytest.raises(PerceptionError, match="labels"):
+        run(["pallet", "measure", *bare, "--calibration", cal, "--labels", "model", "--out", str(tmp_path / "m.yaml")])
 
 
 @pytest.mark.parametrize(
