@@ -14,6 +14,7 @@ Registered by `executor.cli` through `add_parsers(subparsers)`.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -47,11 +48,12 @@ def cmd_pallet_measure(args: argparse.Namespace) -> int:
     raise_problems(problems, PerceptionError)
     assert family is not None and loaded is not None and calibration is not None
     names = [str(p) for p in args.frames]
-    labelled = [
-        collect(problems, lambda f=f, n=n: _with_labels(f, n, args.labels)) for f, n in zip(loaded, names, strict=True)
-    ]
+    frames = []
+    for bundle, where in zip(loaded, names, strict=True):
+        labelled = collect(problems, functools.partial(_with_labels, bundle, where, args.labels))
+        if labelled is not None:
+            frames.append(labelled)
     raise_problems(problems, PerceptionError)
-    frames = [f for f in labelled if f is not None]
     measured = measure_pallet(frames, calibration, family, names, labels=LabelsMode(args.labels))
     name = args.name or f"measured {Path(args.out).stem}"
     try:
