@@ -266,7 +266,7 @@ class EstimatePallet(Behaviour):
         _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.estimated_pallet)
         ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
         node = ctx.roadmap.node(ctx.pallet_node)
-        al = check_alignment(est.T_world_pallet, node, _tolerances(ctx))
+        al = check_alignment(est.T_world_pallet, node, _tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
         world = est.T_world_pallet.to_se2()
         entry: dict[str, Any] = {
             "problems": list(al.problems),
@@ -280,6 +280,11 @@ class EstimatePallet(Behaviour):
             "lateral_mm": round(al.lateral_m * 1e3, 1),
             "longitudinal_mm": round(al.longitudinal_m * 1e3, 1),
             "yaw_deg": round(math.degrees(al.yaw_rad), 3),
+            "uncertainty_mm_mm_deg": [
+                round(al.uncertainty[0] * 1e3, 1),
+                round(al.uncertainty[1] * 1e3, 1),
+                round(math.degrees(al.uncertainty[2]), 3),
+            ],
             "aligned": al.aligned,
         }
         ctx.record.setdefault("estimates", []).append(entry)

@@ -394,6 +394,7 @@ def estimate_to_json(estimate: PalletEstimate) -> dict[str, Any]:
                 "yaw_rad": estimate.spread.yaw_rad,
                 "x_common_m": estimate.spread.x_common_m,
                 "y_common_m": estimate.spread.y_common_m,
+                "yaw_common_rad": estimate.spread.yaw_common_rad,
             },
             "n_points": estimate.n_points,
             "n_face_points": estimate.n_face_points,
@@ -419,7 +420,10 @@ def estimate_from_json(doc: Mapping[str, Any], where: str) -> PalletEstimate:
         T_forklift_pallet=se3_from_json(_field(e, "T_forklift_pallet", where), f"{where}: T_forklift_pallet"),
         spread=PalletSpread(
             *(_number(_field(spread, k, where), f"{where}: spread.{k}") for k in ("x_m", "y_m", "yaw_rad")),
-            *(_number(spread.get(k, 0.0), f"{where}: spread.{k}") for k in ("x_common_m", "y_common_m")),
+            *(
+                _number(spread.get(k, 0.0), f"{where}: spread.{k}")  # optional: services from before them
+                for k in ("x_common_m", "y_common_m", "yaw_common_rad")
+            ),
         ),
         n_points=int(_number(_field(e, "n_points", where), f"{where}: n_points")),
         n_face_points=int(_number(_field(e, "n_face_points", where), f"{where}: n_face_points")),
