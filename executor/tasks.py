@@ -27,7 +27,7 @@ from typing import Any
 
 from palletpilot.executor.behaviour import Behaviour, Context, Settings, TemporaryNodes
 from palletpilot.executor.driving import Charge, FollowRoute, ReturnToRoadmap, SetForks, Wait, travel_height
-from palletpilot.executor.entry import CheckVolume, entry_volume, slot_volume
+from palletpilot.executor.entry import CheckVolume, entry_pocket_fit, entry_volume, slot_volume
 from palletpilot.executor.errors import (
     CALIBRATION_FAILED,
     CANCELLED,
@@ -260,7 +260,9 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
                     "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
                     "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
                     "replan": Replan,
-                    "check_entry": lambda: CheckVolume(entry_volume, PATH_BLOCKED, "the pallet's entry volume"),
+                    "check_entry": lambda: CheckVolume(
+                        entry_volume, PATH_BLOCKED, "the pallet's entry volume", fit=entry_pocket_fit
+                    ),
                     "approach": lambda: FollowRoute(pre, via=approach_route),
                     "return_to_roadmap": ReturnToRoadmap,
                 }
