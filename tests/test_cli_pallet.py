@@ -58,15 +58,25 @@ def test_not_found_propagates_as_pallet_not_found(tmp_path, frame, calib):
     labels = np.where(np.isin(frame.labels, (7, 8)), SemanticClass.DRIVABLE, frame.labels).astype(np.uint8)
     path = str(save_bundle(tmp_path / "empty.npz", dataclasses.replace(frame, labels=labels)))
     with pytest.raises(PalletNotFound, match="too few points") as info:
-        run(["estimate-pallet", path, "--calibration", calib])
+        run(["estimate-pallet", path, "--calibration", calib, "--labels", "model"])
     assert str(info.value).startswith(f"{path}: pallet not found") and "\n" not in str(info.value)
     assert info.value.reason == "too_few_points"
 
 
-def test_without_labels_or_rgb_says_labels_are_needed(tmp_path, frame, calib):
+def test_without_labels_or_rgb_the_model_mode_says_labels_are_needed(tmp_path, frame, calib):
     path = str(save_bundle(tmp_path / "bare.npz", dataclasses.replace(frame, labels=None, rgb=None)))
     with pytest.raises(PerceptionError, match="labels"):
-        run(["estimate-pallet", path, "--calibration", calib])
+        run(["estimate-pallet", path, "--calibration", calib, "--labels", "model"])
+
+
+@pytest.mark.parametrize("mode", ["geometry", "fused"])
+def test_without_labels_or_rgb_geometry_finds_the_pallet(tmp_path, frame, calib, mode, capsys):
+    # Depth alone: the default (fused) and geometry modes need no labels and no RGB.
+    path = str(save_bundle(tmp_path / "bare.npz", dataclasses.replace(frame, labels=None, rgb=None)))
+    run(["estimate-pallet", path, "--calibration", calib, "--labels", mode, "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    truth = frame.truth["T_forklift_pallet_true"]
+    assert doc["x_m"] == pytest.approx(truth[0, 3], abs=0.01) and doc["y_m"] == pytest.approx(truth[1, 3], abs=0.005)
 
 
 def test_bad_calibration_file_is_a_perception_error(tmp_path, frame):
