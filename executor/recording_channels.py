@@ -81,6 +81,7 @@ WARNING_EVENTS = frozenset(
         "calibration_failed",
         "calibration_warning",
         "calibration_refused",
+        "calibration_untrusted",
         "calibration_axis_kept",
         "camera_mount_warning",
         "perception_result_discarded",
