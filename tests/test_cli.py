@@ -103,7 +103,7 @@ def test_bench_pallet_reports_frames_and_fused_estimates(capsys):
 @pytest.mark.parametrize(
     "option, message",
     [
-        (["--labels", "foo"], "argument --labels: unknown 'foo' (known: gt,onnx)"),
+        (["--labels", "foo"], "argument --labels: unknown 'foo' (known: gt,onnx,model,geometry,fused)"),
         (["--frames-per-estimate", "0"], "argument --frames-per-estimate: must be an integer in 1..100, got '0'"),
     ],
 )

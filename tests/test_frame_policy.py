@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from palletpilot.bench import pallet as bench_pallet
-from palletpilot.bench.pallet import FrameSpec, family_spec, standpoint
+from palletpilot.bench.pallet import FrameSpec, standpoint
+from palletpilot.bench.pallet_families import _wrong, family_spec
 from palletpilot.executor.app import run_simulated
 from palletpilot.executor.behaviour import Settings
 from palletpilot.geometry import SE3
@@ -74,9 +75,9 @@ def test_a_single_frame_is_wrong_only_when_it_is_confidently_wrong():
     overconfident = (0.001, 0.001, yaw, 0.0), (0.002, 0.002, math.radians(0.2))
     far_lateral = (0.040, 0.001, 0.0, 0.0), (0.005, 0.002, math.radians(0.2))
     errs, sigmas = zip(honest, overconfident, far_lateral, strict=True)
-    assert bench_pallet._wrong("eur", list(errs), list(sigmas)) == (2, 3)
-    assert bench_pallet._wrong("eur", list(errs), None) == (3, 3)  # fused: every one beyond the limits
-    assert bench_pallet._wrong("mismatch", list(errs[:1]), None) == (1, 1)
+    assert _wrong("eur", list(errs), list(sigmas)) == (2, 3)
+    assert _wrong("eur", list(errs), None) == (3, 3)  # fused: every one beyond the limits
+    assert _wrong("mismatch", list(errs[:1]), None) == (1, 1)
 
 
 @pytest.mark.parametrize("build_tolerance_m", [0.0, 0.005])
