@@ -91,6 +91,13 @@ def _without(frame: FrameBundle, cls: int) -> FrameBundle:
     return dataclasses.replace(frame, labels=labels)
 
 
+def _no_forks(frame: FrameBundle) -> FrameBundle:
+    """The frame with the forks gone from the labels and the depth (the camera sees no blades at all)."""
+    depth = frame.depth.copy()
+    depth[frame.labels == SemanticClass.FORKS] = 0.0
+    return dataclasses.replace(_without(frame, SemanticClass.FORKS), depth=depth)
+
+
 def test_clear_errors():
     frame, _ = render()
     with pytest.raises(CalibrationError, match="no forks: 0 fork pixels"):
@@ -150,10 +157,16 @@ def test_cli_calibrate(tmp_path, capsys):
     assert np.allclose(doc["xyz_m"], truth.t, atol=5e-4)
     assert doc["tilt_deg"] == pytest.approx(25.0, abs=0.05)
     # Cannot calibrate: one line on stderr, exit 2.
-    bad = save_bundle(tmp_path / "bad.npz", _without(frame, SemanticClass.FORKS))
+    bad = save_bundle(tmp_path / "bad.npz", _no_forks(frame))
     assert main(["calibrate", str(bad), "--forks", forks]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no forks" in err[0] and str(bad) in err[0]
+    # Without fork labels the model mode finds none; geometry (fused, the default) sees the blades in depth.
+    unlabelled = save_bundle(tmp_path / "unlabelled.npz", _without(frame, SemanticClass.FORKS))
+    assert main(["calibrate", str(unlabelled), "--forks", forks, "--labels", "model"]) == 2
+    assert "no forks" in capsys.readouterr().err
+    assert main(["calibrate", str(unlabelled), "--forks", forks, "--json"]) == 0
+    assert np.allclose(json.loads(capsys.readouterr().out)["xyz_m"], truth.t, atol=3e-3)
     assert main(["calibrate", str(path), "--forks", str(tmp_path / "none.yaml")]) == 2
     assert "cannot read" in capsys.readouterr().err
     broken = tmp_path / "forks.yaml"
@@ -169,7 +182,7 @@ def test_calibrate_out_is_replaced_only_by_a_good_calibration_written_whole(tmp_
 
     frame, _ = render()
     good_frame = save_bundle(tmp_path / "f.npz", frame)
-    bad_frame = save_bundle(tmp_path / "bad.npz", _without(frame, SemanticClass.FORKS))
+    bad_frame = save_bundle(tmp_path / "bad.npz", _no_forks(frame))
     forks = str(MISSIONS / "forks.yaml")
     out = tmp_path / "calibration.json"
     assert main(["calibrate", str(good_frame), "--forks", forks, "--out", str(out)]) == 0
