@@ -185,12 +185,17 @@ def test_remote_gives_the_results_of_local(frames, local, client):
     assert segmented.labels is not None and segmented.labels.shape == frame.depth.shape
 
     # the service's own answers come back as the same exception, with the same reason
-    no_pallet = np.where(np.isin(frame.labels, (7, 8)), 0, frame.labels).astype(np.uint8)
+    pallet = np.isin(frame.labels, (7, 8))  # the pallet gone: from the labels and from the depth
+    no_pallet = dataclasses.replace(
+        frame, labels=np.where(pallet, 0, frame.labels).astype(np.uint8), depth=np.where(pallet, 0.0, frame.depth)
+    )
+    with pytest.raises(PalletNotFound) as mine_info:
+        local.estimate_pallet(no_pallet, calibration, POSE)
     with pytest.raises(PalletNotFound) as info:
-        client.estimate_pallet(dataclasses.replace(frame, labels=no_pallet), calibration, POSE)
-    assert info.value.reason == "too_few_points"
-    with pytest.raises(CalibrationError):
-        client.calibrate([dataclasses.replace(cal_frames[0], labels=np.zeros_like(cal_frames[0].labels))])
+        client.estimate_pallet(no_pallet, calibration, POSE)
+    assert info.value.reason == mine_info.value.reason and str(info.value) == str(mine_info.value)
+    with pytest.raises(CalibrationError):  # no depth: neither floor nor forks
+        client.calibrate([dataclasses.replace(cal_frames[0], depth=np.zeros_like(cal_frames[0].depth))])
     with pytest.raises(PerceptionError, match="no frame in the request, and the service has no camera"):
         client.estimate_pallet(None, calibration, POSE)
 
