@@ -196,10 +196,10 @@ def test_a_failure_on_a_temporary_node_backs_out_through_the_temporary_edges_to_
         perception, ctx = runner.ctx.perception, runner.ctx
         real = perception.estimate_pallet
 
-        def estimate(frame, calibration, pose, expected=None, pallet=None):
+        def estimate(frame, calibration, pose, expected=None, pallet=None, **kw):
             if ctx.roadmap.node(ctx.pre_node).temporary:
                 raise PerceptionError("test: nothing seen from the temporary node")
-            return real(frame, calibration, pose, expected, pallet)
+            return real(frame, calibration, pose, expected, pallet, **kw)
 
         perception.estimate_pallet = estimate
 
