@@ -150,7 +150,9 @@ class EstimatePallet(Behaviour):
     Takes `frames_per_estimate` frames on consecutive ticks (each with its localization fix) while the
     truck stands, estimates them off the loop and fuses the estimates; while the fused yaw is still
     uncertain, another round of frames, up to `max_frames_per_estimate` (`_frame_policy`). When as many
-    frames refused the pallet type as gave an estimate, `pallet_not_found`: a type in doubt is not entered.
+    frames refused the pallet type as gave an estimate, `pallet_not_found`: a type in doubt is not entered
+    (unless something stands in the entry volume before the pallet, hiding part of its face: then, as
+    when no pallet is seen, hold and look again, `path_blocked` after the wait).
     """
 
     timeout_s = 20.0
@@ -218,6 +220,8 @@ class EstimatePallet(Behaviour):
             raise TaskFailed(PALLET_NOT_FOUND, why)
         verdict = _frame_policy(ctx).after_round(self.estimates, [r for r, _ in self.errors], len(self.frames))
         if verdict.type_in_doubt:
+            if self._blocked_in_front(ctx):
+                return None  # something before the pallet hides part of its face: look again later
             refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
             raise TaskFailed(
                 PALLET_NOT_FOUND,
