@@ -110,6 +110,7 @@ from palletpilot.perception.pallet_face import (
     _FaceCoords,
     _fit_plane,
     _joint_refine,
+    _no_return_rays,
     _Plane,
     _ransac,
     _Rays,
@@ -425,7 +426,8 @@ def _face_pixels(
     z0: float,
     cfg: PalletEstimatorConfig,
 ) -> tuple[_Rays, np.ndarray]:
-    """Step 3: every pixel with depth near the face (whatever its label) as a ray, and which are steady.
+    """Step 3: every pixel with depth near the face (whatever its label) as a ray, and which are steady;
+    and the pixels without depth that saw past the face (`_no_return_rays`: inverse depth 0, steady).
 
     Steady: not next to a depth discontinuity, where pixels may mix both sides (flying pixels).
     """
@@ -445,7 +447,8 @@ def _face_pixels(
     steady = ~_depth_edges(depth[rs, cs], sub_valid, cfg)[rr, cc]
     rr, cc = rr + rs.start, cc + cs.start
     all_rays = _rays(depth, frame.K, R, rr, cc, labelled[rr, cc])
-    return all_rays, steady
+    past = _no_return_rays(frame, T_cf, rs, cs, z0, cfg)
+    return all_rays.plus(past), np.concatenate([steady, np.ones(len(past.w), bool)])
 
 
 def _lateral_centre(

@@ -86,6 +86,12 @@ class PalletEstimatorConfig:
     max_side_solid: float = 0.5
     """Largest share of pallet pixels just past a side of the modelled face (block layer) that may lie on
     the face plane: more, and the face is wider than the pallet type's (`type_mismatch`)."""
+    no_return_range_m: float = 6.0
+    """A pixel near the face without depth saw past it (a time-of-flight or stereo camera returns nothing
+    where a ray meets nothing in its range: through a pocket, beside the face) when its ray stays above the
+    pallet's support for this far (camera depth, m) and no pixel with depth lies within
+    `no_return_margin_px` (a dropout at a depth edge is unknown, not far); 0 counts none."""
+    no_return_margin_px: int = 2
     missing_board_depth_m: float = 0.015
     """A cell of the face (a bottom board, a quarter of a block face) whose pixels lie (median) this far
     behind the face is missing or chipped: left out of the face fit."""

@@ -44,18 +44,59 @@ class _Rays:
     def subset(self, keep: np.ndarray) -> _Rays:
         return _Rays(self.rows[keep], self.cols[keep], self.d[keep], self.w[keep], self.labelled[keep])
 
+    def plus(self, more: _Rays) -> _Rays:
+        """These rays and `more`."""
+        return _Rays(
+            np.concatenate([self.rows, more.rows]),
+            np.concatenate([self.cols, more.cols]),
+            np.concatenate([self.d, more.d]),
+            np.concatenate([self.w, more.w]),
+            np.concatenate([self.labelled, more.labelled]),
+        )
 
-def _rays(
-    depth: np.ndarray, K: np.ndarray, R: np.ndarray, rows: np.ndarray, cols: np.ndarray, lab: np.ndarray
-) -> _Rays:
-    z = depth[rows, cols].astype(np.float64)
+
+def _directions(K: np.ndarray, R: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Forklift-frame ray directions (N, 3) per unit camera depth of pixels (camera rotation `R`)."""
     fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     yc = (rows - cy) / fy
     xc = ((cols - cx) - skew * yc) / fx
     # Element-wise, not a BLAS product: right after Open3D's ray casting, a threaded BLAS call on two
     # cores oversubscribes them badly (see sim.camera).
-    d = xc[:, None] * R[:, 0] + yc[:, None] * R[:, 1] + R[:, 2]
-    return _Rays(rows, cols, d, 1.0 / z, lab)
+    return xc[:, None] * R[:, 0] + yc[:, None] * R[:, 1] + R[:, 2]
+
+
+def _no_return_rays(
+    frame: FrameBundle, T_cf: SE3, rs: slice, cs: slice, support_z: float, cfg: PalletEstimatorConfig
+) -> _Rays:
+    """Pixels of the region `rs` x `cs` without depth that saw past the face, as rays of inverse depth 0
+    (`PalletEstimatorConfig.no_return_range_m`): no pixel with depth within `no_return_margin_px`, and
+    the ray above `support_z` (forklift frame, m) for `no_return_range_m` of camera depth. In the model's
+    scores a ray of inverse depth 0 contradicts the solid face and agrees with a pocket or the open side."""
+    import cv2
+
+    empty = np.zeros(0, np.int64)
+    if cfg.no_return_range_m <= 0.0:
+        return _Rays(empty, empty, np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool))
+    sub = frame.depth[rs, cs]
+    none = ~(np.isfinite(sub) & (sub > 0))
+    k = 2 * cfg.no_return_margin_px + 1
+    kernel = np.ones((k, k), np.uint8)
+    none = cv2.erode(none.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    rr, cc = np.nonzero(none)
+    rr, cc = rr + rs.start, cc + cs.start
+    d = _directions(frame.K, T_cf.R, rr, cc)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(d[:, 2] < 0.0, (support_z - T_cf.t[2]) / d[:, 2], np.inf)  # depth where it meets the support
+    far = reach > cfg.no_return_range_m
+    n = int(far.sum())
+    return _Rays(rr[far], cc[far], d[far], np.zeros(n), np.zeros(n, bool))
+
+
+def _rays(
+    depth: np.ndarray, K: np.ndarray, R: np.ndarray, rows: np.ndarray, cols: np.ndarray, lab: np.ndarray
+) -> _Rays:
+    z = depth[rows, cols].astype(np.float64)
+    return _Rays(rows, cols, _directions(K, R, rows, cols), 1.0 / z, lab)
 
 
 @dataclass(frozen=True)

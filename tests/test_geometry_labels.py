@@ -170,3 +170,26 @@ def test_a_pickup_succeeds_with_the_model_replaced_by_noise(tmp_path, run_missio
     r = run_mission(_mission(tmp_path), _scenario(), labels="model")
     assert_failed(r, "calibration_failed")  # the model alone finds no forks in noise: the truck stays stopped
     assert abs(r.sim.speed) < 1e-3 and not r.sim.pallets[0].carried
+
+
+def test_pixels_without_a_return_count_as_seen_past_the_face(frames):
+    # A time-of-flight camera returns no depth where a ray passes the pallet and meets nothing in range:
+    # through the pockets and beside the face. Those pixels are evidence of the open pockets and sides.
+    frame, _, expected, height = frames["rack"]
+    cal, T_true = _truth(frame)
+    T_cf = cal.T_forklift_camera_at(frame.fork_height)
+    face = float(np.median(frame.depth[np.isin(frame.truth["labels_true"], PALLET)]))
+    d = frame.depth.copy()
+    d[d > face + 1.3] = 0.0  # nothing behind the pallet returns (the rack's back, the far wall)
+    tof = dataclasses.replace(frame, depth=d)
+    est = estimate_pallet(tof, cal, expected=expected, labels=LabelsMode.GEOMETRY, support_height_m=height)
+    err = T_true.inv() @ est.T_forklift_pallet
+    assert abs(err.t[1]) < 0.010 and abs(math.degrees(err.to_se2().yaw)) < 0.6
+    assert all(abs(w - 0.2275) < 0.01 for w in est.pocket_widths_m), est.pocket_widths_m
+    from palletpilot.perception.pallet import DEFAULT_CONFIG
+    from palletpilot.perception.pallet_face import _no_return_rays
+
+    rs, cs = slice(0, d.shape[0]), slice(0, d.shape[1])
+    assert len(_no_return_rays(tof, T_cf, rs, cs, height, DEFAULT_CONFIG).w) > 1000  # they are used
+    off = dataclasses.replace(DEFAULT_CONFIG, no_return_range_m=0.0)
+    assert len(_no_return_rays(tof, T_cf, rs, cs, height, off).w) == 0
