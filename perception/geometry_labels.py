@@ -178,8 +178,9 @@ def pallet_labels(
     (`PerceptionError` without them). `geometry`: pallet-empty on the pixels in the band from
     `FLOOR_MARGIN_M` above the support to `TOP_MARGIN_M` above the deck inside the envelope, drivable on the
     floor, unlabeled elsewhere; the band starts higher where the depth is noisier (`FLOOR_SIGMAS` of a
-    point's height noise from `depth_noise_k`). `fused`: the geometry's, plus the model's pallet pixels inside the envelope
-    (as blobs), less its person blobs; pallet-full where the model says a pallet is loaded.
+    point's height noise from `depth_noise_k`). `fused`: the geometry's, plus the model's pallet pixels
+    inside the envelope (as blobs), less its person blobs; pallet-full where the model says a pallet is
+    loaded.
     """
     if mode == LabelsMode.MODEL:
         if frame.labels is None:

@@ -352,10 +352,34 @@ FRAME_CASES = [
         _changed(lambda a: a.update(K=a["K"].astype(np.float32))),
     ),
     # lens distortion (optional `dist`)
-    Case("frame_dist_3_coefficients", CALIBRATE, 2, "dist: must be a float64 vector of 4, 5, 8, 12 or 14", _changed(lambda a: a.update(dist=np.array([0.1, 0.0, 0.0])))),
-    Case("frame_dist_nan", ESTIMATE, 2, "dist: has non-finite coefficients", _changed(lambda a: a.update(dist=np.array([np.nan, 0.0, 0.0, 0.0, 0.0])))),
-    Case("frame_dist_tangential", CALIBRATE, 2, "dist: p1, p2 up to 0.3: beyond 0.1", _changed(lambda a: a.update(dist=np.array([0.0, 0.0, 0.3, 0.0])))),
-    Case("frame_dist_folds", ESTIMATE, 2, "dist: the lens model folds back", _changed(lambda a: a.update(dist=np.array([-3.0, 0.0, 0.0, 0.0, 0.0])))),
+    Case(
+        "frame_dist_3_coefficients",
+        CALIBRATE,
+        2,
+        "dist: must be a float64 vector of 4, 5, 8, 12 or 14",
+        _changed(lambda a: a.update(dist=np.array([0.1, 0.0, 0.0]))),
+    ),
+    Case(
+        "frame_dist_nan",
+        ESTIMATE,
+        2,
+        "dist: has non-finite coefficients",
+        _changed(lambda a: a.update(dist=np.array([np.nan, 0.0, 0.0, 0.0, 0.0]))),
+    ),
+    Case(
+        "frame_dist_tangential",
+        CALIBRATE,
+        2,
+        "dist: p1, p2 up to 0.3: beyond 0.1",
+        _changed(lambda a: a.update(dist=np.array([0.0, 0.0, 0.3, 0.0]))),
+    ),
+    Case(
+        "frame_dist_folds",
+        ESTIMATE,
+        2,
+        "dist: the lens model folds back",
+        _changed(lambda a: a.update(dist=np.array([-3.0, 0.0, 0.0, 0.0, 0.0]))),
+    ),
     # fork height
     Case("frame_fork_height_nan", CALIBRATE, 2, "fork_height: must be a finite number", _fork_height(float("nan"))),
     Case("frame_fork_height_negative", ESTIMATE, 2, "fork_height: -3 m is outside", _fork_height(-3.0)),
