@@ -14,6 +14,8 @@ Every output file is written the one way, `write_atomic` (temporary file in the 
 rename, fsync of the folder): a reader sees the old file or the new one, never a truncated one, and a
 failed write (full disk, no permission) leaves the old file and raises `OutputError` with one line.
 JSON output is strict RFC 8259 (`strict_json`, `dumps_json`): NaN and infinities become `null`.
+Dimensions in files: `FileNumber` (a number, never a string or a boolean), `check_ranges` / `range_error`
+(a value outside its plausible range, named with the range).
 """
 
 from __future__ import annotations
@@ -26,10 +28,11 @@ import os
 import tempfile
 from importlib import resources
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo
+from pydantic_core import PydanticCustomError
 
 from palletpilot.geometry.errors import OutputError, PalletpilotError
 
@@ -62,6 +65,26 @@ class FileModel(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+FileNumber = Annotated[float, Field(strict=True)]
+"""A number in a file (an int or a float; finite by `FileModel`), never a string or a boolean."""
+
+
+def range_error(value: float, lo: float, hi: float, what: str) -> PydanticCustomError:
+    """The error for a dimension outside its range: names the range and the value."""
+    return PydanticCustomError("out_of_range", f"{value:g} m is outside {lo:g}..{hi:g} m ({what})")
+
+
+def check_ranges(
+    value: float | tuple[float, ...], info: ValidationInfo, ranges: dict[str, tuple[float, float, str]]
+) -> None:
+    """Raise `range_error` when `value` (or an element of it) lies outside `ranges[field]`."""
+    assert info.field_name is not None
+    lo, hi, what = ranges[info.field_name]
+    for v in value if isinstance(value, tuple) else (value,):
+        if not lo <= v <= hi:
+            raise range_error(v, lo, hi, what)
 
 
 def read_text(
