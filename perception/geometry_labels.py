@@ -17,11 +17,11 @@ what the caller already knows:
 
 `LabelsMode` (`perception.labels_mode`, re-exported here) says which source selects: `model` (the
 segmentation labels alone, as before issue 37), `geometry` (depth alone; the model is not run), `fused`
-(the default of every command: geometry selects,
-the model adds what geometry cannot tell, as hints that must be coherent blobs so that a model giving noise
-changes nothing: a person in front of the pallet is left out, a load is cargo, and the model's own pallet
-pixels inside the envelope join the geometry's). `MODES` is the one table of what each mode needs and what
-it is robust to (the README quotes it).
+(the default of every command: geometry selects, the model adds what geometry cannot tell, as hints that
+must be coherent blobs so that a model giving noise changes nothing: a person in front of the pallet is
+left out, a load is cargo above the pockets, and where the geometry sees no pallet, the model's pallet
+pixels inside the envelope stand in). `MODES` is the one table of what each mode needs and what it is
+robust to (the README quotes it).
 
 Frames (ARCHITECTURE.md): `camera` optical (x right, y down, z forward), `forklift` (origin on the floor
 between the fork heels, x towards the tips, z up), `pallet` (origin at the centre of the entry face on the
@@ -178,9 +178,10 @@ def pallet_labels(
     (`PerceptionError` without them). `geometry`: pallet-empty on the pixels in the band from
     `FLOOR_MARGIN_M` above the support to `TOP_MARGIN_M` above the deck inside the envelope, drivable on the
     floor, unlabeled elsewhere; the band starts higher where the depth is noisier (`FLOOR_SIGMAS` of a
-    point's height noise from `depth_noise_k`). `fused`: the geometry's, plus the model's pallet pixels
-    inside the envelope (as blobs), less its person blobs; pallet-full where the model says a pallet is
-    loaded.
+    point's height noise from `depth_noise_k`). `fused`: the geometry's, less the model's person blobs,
+    its load blobs above the pockets as cargo, pallet-full where it says a pallet is loaded; where the
+    geometry sees no pallet (fewer than `SEES_MIN_PX` pixels: a wrong support height), the model's pallet
+    blobs inside the envelope.
     """
     if mode == LabelsMode.MODEL:
         if frame.labels is None:
@@ -209,11 +210,15 @@ def pallet_labels(
         return PalletLabels(labels, mode, geometry_px, None)
     model_pallet = _blobs(class_mask(model, _PALLET) & region)
     model_px = int(np.count_nonzero(model_pallet))
-    labels[model_pallet & ~band] = SemanticClass.PALLET_EMPTY
+    if geometry_px < SEES_MIN_PX:  # geometry sees nothing where the pallet should stand: the model's view
+        labels[model_pallet & ~band] = SemanticClass.PALLET_EMPTY
     full = _blobs(model == SemanticClass.PALLET_FULL)
     labels[full & (labels == SemanticClass.PALLET_EMPTY)] = SemanticClass.PALLET_FULL
-    for hint in (SemanticClass.PERSON, SemanticClass.CARGO):
-        labels[_blobs((model == hint) & valid)] = hint
+    labels[_blobs((model == SemanticClass.PERSON) & valid)] = SemanticClass.PERSON
+    # A load or its film seen by the model: above the pockets only (the blocks and bottom boards stay the
+    # face's, whatever a model says of them).
+    above_pockets = ~band | (z > pallet.pocket_height)
+    labels[_blobs((model == SemanticClass.CARGO) & valid) & above_pockets] = SemanticClass.CARGO
     return PalletLabels(labels, mode, geometry_px, model_px)
 
 
@@ -231,7 +236,10 @@ def load_mask(
     frame: FrameBundle, T_forklift_camera: SE3, T_forklift_pallet: SE3, pallet: PalletType, overhang_m: float = 0.10
 ) -> tuple[np.ndarray, bool]:
     """Pixels of what stands over the pallet, by geometry (points above the deck over its footprint), and
-    whether a load stands on it (`LOAD_MIN_PX` of them within `LOAD_BOTTOM_M` of the deck's top).
+    whether a load stands on it (`LOAD_MIN_PX` of them within `LOAD_BOTTOM_M` of the deck's top). With a
+    load, the face's deck layer (above the pockets, at most `overhang_m` in front of the face) joins the
+    mask: a load's film or overhang may hang over it, and depth cannot tell them apart (a film 1-3 cm proud
+    of the deck moved the face 1-2.5 cm in `bench pallet --families film`).
 
     `T_forklift_pallet`: the pallet frame (on its underside) as far as the estimator knows it; the footprint
     is grown by `overhang_m` in front of the entry face and at the sides (a load may overhang).
@@ -243,8 +251,11 @@ def load_mask(
         over &= np.abs(q[..., 1]) <= 0.5 * pallet.width + overhang_m
         above = (q[..., 2] > pallet.height + TOP_MARGIN_M) & (q[..., 2] < pallet.height + 3.0)
         low = q[..., 2] <= pallet.height + LOAD_BOTTOM_M
+        deck_front = (q[..., 0] >= -overhang_m) & (q[..., 0] <= 0.05) & (q[..., 2] > pallet.pocket_height)
+        deck_front &= (q[..., 2] <= pallet.height + TOP_MARGIN_M) & (np.abs(q[..., 1]) <= 0.5 * pallet.width + 0.02)
     mask = valid & over & above
-    return mask, int(np.count_nonzero(mask & low)) >= LOAD_MIN_PX
+    loaded = int(np.count_nonzero(mask & low)) >= LOAD_MIN_PX
+    return (mask | (valid & deck_front)) if loaded else mask, loaded
 
 
 def sources_note(found: PalletLabels) -> str:

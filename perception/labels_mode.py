@@ -35,7 +35,7 @@ MODES: dict[LabelsMode, tuple[str, str]] = {
     LabelsMode.FUSED: (
         "as geometry, plus RGB for the model's hints",
         "as geometry, and a model giving noise changes nothing; the model adds persons and loads it sees "
-        "as coherent blobs and its pallet pixels inside the envelope",
+        "as coherent blobs, and its pallet pixels where the geometry sees none",
     ),
 }
 """What each mode needs and what it is robust to."""
