@@ -19,7 +19,7 @@ what the caller already knows:
 segmentation labels alone, as before issue 37), `geometry` (depth alone; the model is not run), `fused`
 (the default of every command: geometry selects, the model adds what geometry cannot tell, as hints that
 must be coherent blobs so that a model giving noise changes nothing: a person in front of the pallet is
-left out, a load is cargo above the pockets, and where the geometry sees no pallet, the model's pallet
+left out, a load above the pallet is cargo, and where the geometry sees no pallet, the model's pallet
 pixels inside the envelope stand in). `MODES` is the one table of what each mode needs and what it is
 robust to (the README quotes it).
 
@@ -179,7 +179,7 @@ def pallet_labels(
     `FLOOR_MARGIN_M` above the support to `TOP_MARGIN_M` above the deck inside the envelope, drivable on the
     floor, unlabeled elsewhere; the band starts higher where the depth is noisier (`FLOOR_SIGMAS` of a
     point's height noise from `depth_noise_k`). `fused`: the geometry's, less the model's person blobs,
-    its load blobs above the pockets as cargo, pallet-full where it says a pallet is loaded; where the
+    its load blobs above the pallet's band as cargo, pallet-full where it says a pallet is loaded; where the
     geometry sees no pallet (fewer than `SEES_MIN_PX` pixels: a wrong support height), the model's pallet
     blobs inside the envelope.
     """
@@ -215,10 +215,9 @@ def pallet_labels(
     full = _blobs(model == SemanticClass.PALLET_FULL)
     labels[full & (labels == SemanticClass.PALLET_EMPTY)] = SemanticClass.PALLET_FULL
     labels[_blobs((model == SemanticClass.PERSON) & valid)] = SemanticClass.PERSON
-    # A load or its film seen by the model: above the pockets only (the blocks and bottom boards stay the
-    # face's, whatever a model says of them).
-    above_pockets = ~band | (z > pallet.pocket_height)
-    labels[_blobs((model == SemanticClass.CARGO) & valid) & above_pockets] = SemanticClass.CARGO
+    # A load seen by the model: above the pallet's band only (the face stays the geometry's until the face is
+    # found; then `load_mask` takes a loaded pallet's deck layer, where a film may hang).
+    labels[_blobs((model == SemanticClass.CARGO) & valid) & ~band] = SemanticClass.CARGO
     return PalletLabels(labels, mode, geometry_px, model_px)
 
 
