@@ -3,7 +3,8 @@
 A benchmark module has `add_arguments(parser)` and `run(args) -> dict` (the JSON it prints).
 Public API: `BENCHMARKS`, the registry of name -> module path. Shared by the pickup benchmarks
 (`bench.missions`): `example_pallet_nodes`, `draw_pickup` and `start_node` (a run's pallet node and where
-its truck starts on the example map).
+its truck starts on the example map). `bench.pallet_families` runs `bench pallet --families`, and
+`bench.pallet_coverage` measures whether the stated spreads cover the errors.
 """
 
 BENCHMARKS: dict[str, str] = {

@@ -6,8 +6,13 @@ Public API:
   ids, 255 unlabeled) and the bundle limits, re-exported from `perception.bundle_contract` (the data
   contract: class ids, keys, limits and the checks of every field) and `perception.bundle_archive`
   (reading an untrusted .npz: zip directory and .npy headers checked before any data is unpacked).
-- `perception.specs`: `ForkGeometry` / `load_forks` (forks file), `PalletType` (EUR/EPAL by default, its
-  boards and blocks as boxes in the pallet frame; `pallet_type("eur" or FILE.yaml)`),
+- `perception.labels_mode`: `LabelsMode` (`model`, `geometry`, `fused`: which source selects the pallet's, the
+  floor's and the forks' pixels; `MODES`, what each needs and is robust to); `perception.geometry_labels`:
+  those pixels from depth (`pallet_labels`, `calibration_labels`, `load_mask`, `sources_note`).
+- `perception.distortion`: `undistort_bundle` (a bundle's lens distortion `dist` removed, same K).
+- `perception.specs`: `ForkGeometry` / `load_forks` (forks file; `perception.fork_geometry`), `PalletType`
+  (EUR/EPAL by default, its boards and blocks as boxes in the pallet frame; `pallet_type("eur" or
+  FILE.yaml)`; a family with ranges: `perception.pallet_family`, measured by `perception.pallet_measure`),
   `pallet_pose_at_node` / `node_pose_for_pallet` (pallet node <-> `T_world_pallet`, entry face
   `ENTRY_GAP_M` ahead of the fork heels).
 - `perception.calibration`: `calibrate` (`T_forklift_camera` from fork and floor frames; `model` and
