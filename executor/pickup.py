@@ -220,12 +220,13 @@ class EstimatePallet(Behaviour):
             raise TaskFailed(PALLET_NOT_FOUND, why)
         verdict = _frame_policy(ctx).after_round(self.estimates, [r for r, _ in self.errors], len(self.frames))
         if verdict.type_in_doubt:
-            if self._blocked_in_front(ctx):
-                return None  # something before the pallet hides part of its face: look again later
             refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
+            taken = len(self.frames)
+            if self._blocked_in_front(ctx):  # (which forgets this round's frames)
+                return None  # something before the pallet hides part of its face: look again later
             raise TaskFailed(
                 PALLET_NOT_FOUND,
-                f"{len(refusals)} of {len(self.frames)} frames refused the pallet type "
+                f"{len(refusals)} of {taken} frames refused the pallet type "
                 f"({ctx.pallet_type.name}), so it is not entered: {refusals[-1]}",
             )
         fused = verdict.fused
