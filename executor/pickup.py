@@ -221,12 +221,12 @@ class EstimatePallet(Behaviour):
         verdict = _frame_policy(ctx).after_round(self.estimates, [r for r, _ in self.errors], len(self.frames))
         if verdict.type_in_doubt:
             refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
-            taken = len(self.frames)
+            n_frames = len(self.frames)
             if self._blocked_in_front(ctx):  # (which forgets this round's frames)
                 return None  # something before the pallet hides part of its face: look again later
             raise TaskFailed(
                 PALLET_NOT_FOUND,
-                f"{len(refusals)} of {taken} frames refused the pallet type "
+                f"{len(refusals)} of {n_frames} frames refused the pallet type "
                 f"({ctx.pallet_type.name}), so it is not entered: {refusals[-1]}",
             )
         fused = verdict.fused
