@@ -106,6 +106,7 @@ class PalletLabels:
     mode: LabelsMode
     geometry_px: int
     model_px: int | None
+    points: np.ndarray | None = None  # H x W x 3 forklift-frame points (NaN without depth); None in `model`
 
     def to_json(self) -> dict[str, object]:
         """The sources' pixel counts for a report."""
@@ -207,7 +208,7 @@ def pallet_labels(
     geometry_px = int(np.count_nonzero(band))
     model = frame.labels if mode == LabelsMode.FUSED else None
     if model is None:
-        return PalletLabels(labels, mode, geometry_px, None)
+        return PalletLabels(labels, mode, geometry_px, None, pts)
     model_pallet = _blobs(class_mask(model, _PALLET) & region)
     model_px = int(np.count_nonzero(model_pallet))
     if geometry_px < SEES_MIN_PX:  # geometry sees nothing where the pallet should stand: the model's view
@@ -218,7 +219,7 @@ def pallet_labels(
     # A load seen by the model: above the pallet's band only (the face stays the geometry's until the face is
     # found; then `load_mask` takes a loaded pallet's deck layer, where a film may hang).
     labels[_blobs((model == SemanticClass.CARGO) & valid) & ~band] = SemanticClass.CARGO
-    return PalletLabels(labels, mode, geometry_px, model_px)
+    return PalletLabels(labels, mode, geometry_px, model_px, pts)
 
 
 _PALLET = (int(SemanticClass.PALLET_EMPTY), int(SemanticClass.PALLET_FULL))
@@ -232,7 +233,7 @@ LOAD_MIN_PX = 100
 
 
 def load_mask(
-    frame: FrameBundle, T_forklift_camera: SE3, T_forklift_pallet: SE3, pallet: PalletType, overhang_m: float = 0.10
+    points: np.ndarray, T_forklift_pallet: SE3, pallet: PalletType, overhang_m: float = 0.10
 ) -> tuple[np.ndarray, bool]:
     """Pixels of what stands over the pallet, by geometry (points above the deck over its footprint), and
     whether a load stands on it (`LOAD_MIN_PX` of them within `LOAD_BOTTOM_M` of the deck's top). With a
@@ -240,11 +241,12 @@ def load_mask(
     mask: a load's film or overhang may hang over it, and depth cannot tell them apart (a film 1-3 cm proud
     of the deck moved the face 1-2.5 cm in `bench pallet --families film`).
 
+    `points`: the frame's forklift-frame points, H x W x 3, NaN without depth (`PalletLabels.points`);
     `T_forklift_pallet`: the pallet frame (on its underside) as far as the estimator knows it; the footprint
     is grown by `overhang_m` in front of the entry face and at the sides (a load may overhang).
     """
-    pts, valid = _points(frame, T_forklift_camera)
-    q = (pts - T_forklift_pallet.t) @ T_forklift_pallet.R  # into the pallet frame
+    valid = np.isfinite(points[..., 2])
+    q = (points - T_forklift_pallet.t) @ T_forklift_pallet.R  # into the pallet frame
     with np.errstate(invalid="ignore"):
         over = (q[..., 0] >= -overhang_m) & (q[..., 0] <= pallet.length + 0.02)
         over &= np.abs(q[..., 1]) <= 0.5 * pallet.width + overhang_m

@@ -233,7 +233,8 @@ def _estimate(
     if found_labels.mode != LabelsMode.MODEL:  # a load on the pallet, by geometry, now that the face is known
         origin = plane.point(cam, s0)
         rough = SE3(Rotation.from_euler("z", plane.psi), (origin[0], origin[1], z0))
-        load, loaded = load_mask(frame, T_cf, rough, pallet)
+        assert found_labels.points is not None  # the geometry's points, computed once by `pallet_labels`
+        load, loaded = load_mask(found_labels.points, rough, pallet)
         frame.labels[load] = SemanticClass.CARGO
         if loaded:  # the deck's front strip and the load's foot are not told apart by height: no deck yaw
             cfg = dataclasses.replace(cfg, deck_yaw=False)
