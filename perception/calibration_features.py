@@ -28,7 +28,7 @@ import open3d as o3d
 from palletpilot.geometry import SE3
 from palletpilot.perception.errors import CalibrationError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
-from palletpilot.perception.pointcloud import check_intrinsics, class_mask, deproject
+from palletpilot.perception.pointcloud import check_intrinsics, class_mask, deproject, depth_edges
 from palletpilot.perception.specs import ForkGeometry
 
 if TYPE_CHECKING:
@@ -52,15 +52,6 @@ class _FrameData:
     K_inv: np.ndarray
 
 
-def _depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
-    """Pixels whose 3x3 neighbourhood spans a relative depth jump above `jump` (or touches no-data)."""
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
-    kernel = np.ones((3, 3), np.uint8)
-    d_max = cv2.dilate(d, kernel)
-    d_min = cv2.erode(np.where(d > 0, d, np.float32(1e6)), kernel)
-    return (d_max > d_min * (1.0 + jump)) | (d == 0)
-
-
 def _frame_data(frame: FrameBundle, where: str, limits: Limits) -> _FrameData:
     check_intrinsics(frame.K, f"{where}: K")
     if frame.labels is None:
@@ -71,7 +62,7 @@ def _frame_data(frame: FrameBundle, where: str, limits: Limits) -> _FrameData:
     valid = np.isfinite(frame.depth) & (frame.depth > 0)
     if not valid.any():
         raise CalibrationError(f"{where}: no valid depth in the frame")
-    edge = _depth_edges(frame.depth, limits.depth_edge_jump)
+    edge = depth_edges(frame.depth, limits.depth_edge_jump, no_data_is_edge=True)
     # Near floor only: stereo depth noise grows with z^2 (about 0.1 m at 5 m for a D435).
     near = frame.depth < limits.max_floor_depth
     floor = deproject(frame.depth, frame.K, class_mask(frame.labels, [SemanticClass.DRIVABLE]) & ~edge & near)

@@ -43,7 +43,7 @@ from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.errors import CalibrationError, PerceptionError
 from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, MODES, LabelsMode
-from palletpilot.perception.pointcloud import check_intrinsics, class_mask
+from palletpilot.perception.pointcloud import check_intrinsics, class_mask, depth_edges
 from palletpilot.perception.specs import ForkGeometry, PalletType
 
 __all__ = [
@@ -199,9 +199,7 @@ def pallet_labels(
         band = region & (z >= floor_margin) & (z <= pallet.height + TOP_MARGIN_M)
         floor = valid & (np.abs(pts[..., 2]) < FLOOR_MARGIN_M)
     if expected is None:  # the forks (raised to the pallet) are in the band too: pieces from the image's bottom
-        from palletpilot.perception.calibration_features import _depth_edges
-
-        band &= ~_lower_pieces(band & ~_depth_edges(frame.depth, 0.03))
+        band &= ~_lower_pieces(band & ~depth_edges(frame.depth, 0.03, no_data_is_edge=True))
     labels = np.full(frame.depth.shape, SemanticClass.UNLABELED, np.uint8)
     labels[floor] = SemanticClass.DRIVABLE
     labels[band] = SemanticClass.PALLET_EMPTY
@@ -324,7 +322,6 @@ def calibration_labels(frame: FrameBundle, forks: ForkGeometry, mode: LabelsMode
                 "(segment the RGB first, or use the geometry labels)"
             )
         return frame.labels
-    from palletpilot.perception.calibration_features import _depth_edges
 
     cam, valid = _points(frame, SE3())
     with np.errstate(invalid="ignore"):
@@ -334,7 +331,7 @@ def calibration_labels(frame: FrameBundle, forks: ForkGeometry, mode: LabelsMode
         floor = near & (np.abs(height) < 0.02)
         lo = frame.fork_height + FORK_BAND_M[0]
         hi = frame.fork_height + forks.thickness + FORK_BAND_M[1]
-        band = valid & (height >= lo) & (height <= hi) & ~_depth_edges(frame.depth, 0.03)
+        band = valid & (height >= lo) & (height <= hi) & ~depth_edges(frame.depth, 0.03, no_data_is_edge=True)
     blades = _lower_pieces(band)
     if mode == LabelsMode.FUSED and frame.labels is not None and np.count_nonzero(blades) < FORK_MIN_PX:
         blades = _blobs((frame.labels == SemanticClass.FORKS) & band)

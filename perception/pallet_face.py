@@ -29,6 +29,7 @@ import numpy as np
 from palletpilot.geometry import SE3
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet_estimate import PalletEstimatorConfig, PalletNotFound, PalletSpread
+from palletpilot.perception.pointcloud import depth_edges
 
 
 @dataclass
@@ -370,15 +371,10 @@ def _face_run(s: np.ndarray, max_gap: float) -> tuple[float, float]:
 
 
 def _depth_edges(depth: np.ndarray, valid: np.ndarray, cfg: PalletEstimatorConfig) -> np.ndarray:
-    """Pixels whose 3 x 3 neighbourhood spans a depth jump larger than noise explains (both sides of an edge)."""
-    import cv2
-
-    kernel = np.ones((3, 3), np.uint8)
-    d = np.where(valid, depth, 0.0).astype(np.float32)
-    d_max = cv2.dilate(d, kernel)
-    d_min = cv2.erode(np.where(valid, d, np.float32(1e6)), kernel)
-    rel = np.maximum(cfg.edge_jump_rel, cfg.edge_jump_sigma * cfg.depth_noise_k * d)
-    return d_max > d_min * (1.0 + rel)
+    """Pixels whose 3 x 3 neighbourhood spans a depth jump larger than noise explains (both sides of an edge):
+    `pointcloud.depth_edges` with the jump the larger of `cfg.edge_jump_rel` and the depth noise's share."""
+    d = np.where(valid, depth, 0.0)
+    return depth_edges(depth, np.maximum(cfg.edge_jump_rel, cfg.edge_jump_sigma * cfg.depth_noise_k * d), valid)
 
 
 def _roi(
