@@ -20,6 +20,9 @@ centre lies inside one of its polygons (`front_mask`). Figures (`score_photos`):
   `bbox` grown by a quarter of its width / height on each side (clipped to the photo): pooled over fronts
   (summed intersections / summed unions) and `box_iou_mean`; what it adds to recall: pallet labels
   spilling onto the floor, the load or a neighbour lower it;
+- `pallet_outside_boxes`: the pallet pixels outside every front's grown box, as a share of all pallet pixels
+  and of all photo pixels, pooled: what recall cannot see, pallet labels on shelves, tables and floors (a
+  model that calls everything pallet has full recall);
 - `fronts_covered`: fronts with at least half their pixels pallet (count, total, share), and per photo:
   `photos_all_covered`, `photos_none_covered` (photos with fronts), `fronts_per_photo`;
 - `front_pixels_labelled`: the share of front pixels given each class (what the model calls the pallet
@@ -335,6 +338,7 @@ class _Tally:
         self.recalls: list[float] = []
         self.ious: list[float] = []
         self.box_inter = self.box_union = 0
+        self.photo_px = self.pallet_px = self.pallet_outside = 0
         self.heights: list[tuple[float, int, int]] = []  # (height share, pixels, pallet pixels) per front
         self.per_photo: list[dict[str, Any]] = []
 
@@ -347,6 +351,12 @@ class _Tally:
         self.front_hits += int((union & pallet).sum())
         self.labels += np.bincount(labels[union], minlength=256)
         covered = 0
+        near = np.zeros(labels.shape, bool)  # inside some front's grown box
+        for front in photo.fronts:
+            near[grown_box(front, labels.shape)] = True
+        self.photo_px += labels.size
+        self.pallet_px += int(pallet.sum())
+        self.pallet_outside += int((pallet & ~near).sum())
         for front, mask in zip(photo.fronts, masks, strict=True):
             n, hits = int(mask.sum()), int((mask & pallet).sum())
             self.recalls.append(hits / n)
@@ -401,6 +411,10 @@ def score_photos(photos: Sequence[Photo], segmenter: SegmentationService, per_ph
         "box_iou": _share(tally.box_inter, tally.box_union),
         "box_iou_mean": round(float(np.mean(tally.ious)), 4) if n_fronts else None,
         "fronts_covered": {"count": covered, "total": n_fronts, "share": covered_share},
+        "pallet_outside_boxes": {
+            "of_pallet_px": _share(tally.pallet_outside, tally.pallet_px),
+            "of_photo_px": _share(tally.pallet_outside, tally.photo_px),
+        },
         "goals": {
             "front_recall": {"goal": FRONT_RECALL_GOAL, "met": recall is not None and recall >= FRONT_RECALL_GOAL},
             "fronts_covered_share": {

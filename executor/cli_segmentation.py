@@ -4,6 +4,9 @@
   [--randomise [novel|real]]`:
   render simulator frame bundles for training or evaluation (`sim.dataset.generate_dataset`; `--randomise`:
   domain randomisation of colours, pallet types and light; `--randomise novel`: looks it never draws, for testing);
+- `palletpilot segment scenes OUT_DIR --frames N [--seed S] [--start K] [--jobs J]`: procedural pallet scenes
+  (pallets anywhere: floors, tables, stacks, clutter, any viewpoint) as labelled PNG frames, the data of the
+  transfer training (`sim.pallet_scenes.generate_scenes`);
 - `palletpilot segment train DATA_DIR [DATA_DIR ...] [--init M.onnx] --out OUT.onnx [--steps N | --minutes M]
   [--seed S] [--threads T] [--lr LR] [--thaw-norms] [--heldout DIR]`: fine-tune a model (default: the shipped one) on
   frame bundles and / or folders of labelled PNG frames (`perception.segmentation_data`), with
@@ -49,6 +52,15 @@ def cmd_segment_dataset(args: argparse.Namespace) -> int:
         realism=args.randomise == "real",
     )
     print(f"wrote {len(paths)} frame bundles to {args.out_dir}")
+    return EXIT_OK
+
+
+def cmd_segment_scenes(args: argparse.Namespace) -> int:
+    """Render `--frames` procedural pallet scenes into OUT_DIR as labelled PNG frames."""
+    from palletpilot.sim.pallet_scenes import generate_scenes
+
+    names = generate_scenes(args.out_dir, args.frames, seed=args.seed, start=args.start, jobs=args.jobs)
+    print(f"wrote {len(names)} labelled PNG frames to {args.out_dir}")
     return EXIT_OK
 
 
@@ -151,6 +163,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "auto-exposure, lens distortion: sim.dataset_realism)",
     )
     ds.set_defaults(func=cmd_segment_dataset)
+
+    sc = seg_sub.add_parser("scenes", help="render procedural pallet scenes (labelled PNG frames) for training")
+    sc.add_argument("out_dir", type=out_folder)
+    sc.add_argument("--frames", type=count(1), required=True, help="number of frames")
+    sc.add_argument("--seed", type=seed, default=0)
+    sc.add_argument("--start", type=count(0), default=0, help="index of the first frame (to extend a set)")
+    sc.add_argument("--jobs", type=count(1), default=1, help="processes rendering in parallel")
+    sc.set_defaults(func=cmd_segment_scenes)
 
     tr = seg_sub.add_parser("train", help="fine-tune the segmentation model on frame bundles or labelled PNG frames")
     tr.add_argument(

@@ -339,7 +339,7 @@ def build_model(channels: tuple[int, ...] = CHANNELS, refine: int = 0):  # -> to
             f = feats[-1]
             b, _, h, w = f.shape
             # the row coordinate of the feature cells in the full frame, -1 (top) .. 1 (bottom)
-            rows = (torch.arange(h, dtype=x.dtype) + 0.5) * (x.shape[2] / h)
+            rows = (torch.arange(h, dtype=x.dtype, device=x.device) + 0.5) * (x.shape[2] / h)
             rows = rows.view(1, 1, h, 1)
             if top is not None:  # crops: their first rows in the full frame
                 rows = rows + top.to(x.dtype).view(-1, 1, 1, 1)
@@ -359,23 +359,83 @@ def build_model(channels: tuple[int, ...] = CHANNELS, refine: int = 0):  # -> to
 # -- training -------------------------------------------------------------------------------------
 
 
-def _batch(frames: Frames, idx: np.ndarray, crop: tuple[int, int], focus: float, rng: np.random.Generator):
-    """One training batch from the frames `idx`: normalised crops (B, 3, h, w), labels (B, h, w), crop tops (B,).
-
-    Each crop is placed by `sample_crop` and flipped and jittered by `augment`; torch tensors.
-    """
-    import torch
-
+def _batch_arrays(
+    frames: Frames, idx: np.ndarray, crop: tuple[int, int], focus: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One training batch from the frames `idx` as numpy: normalised crops (B, 3, h, w) float32, labels
+    (B, h, w) int64, crop tops (B,) int64. Each crop is placed by `sample_crop`, flipped and jittered by `augment`."""
     pairs, tops = [], []
     for i in idx:
         rgb, lab = frames[int(i)]
         rows, cols = sample_crop(lab, crop, focus, rng)
         pairs.append(augment(rgb[rows, cols], lab[rows, cols], rng))
         tops.append(rows.start)
-    x = torch.from_numpy(np.stack([p[0] for p in pairs])).permute(0, 3, 1, 2)
-    x = (x - torch.tensor(MEAN).view(1, 3, 1, 1)) / torch.tensor(STD).view(1, 3, 1, 1)
-    y = torch.from_numpy(np.stack([p[1] for p in pairs]).astype(np.int64))
-    return x, y, torch.tensor(tops)
+    x = np.stack([p[0] for p in pairs]).transpose(0, 3, 1, 2)
+    x = (x - np.asarray(MEAN, np.float32).reshape(1, 3, 1, 1)) / np.asarray(STD, np.float32).reshape(1, 3, 1, 1)
+    y = np.stack([p[1] for p in pairs]).astype(np.int64)
+    return np.ascontiguousarray(x, np.float32), y, np.asarray(tops, np.int64)
+
+
+def _batch(frames: Frames, idx: np.ndarray, crop: tuple[int, int], focus: float, rng: np.random.Generator):
+    """`_batch_arrays` as torch tensors (CPU)."""
+    import torch
+
+    x, y, tops = _batch_arrays(frames, idx, crop, focus, rng)
+    return torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(tops)
+
+
+_WORKER_FRAMES: Frames | None = None
+"""The training frames in a batch worker process (inherited through fork, memory shared)."""
+
+
+def _worker_batch(job: tuple[np.ndarray, tuple[int, int], float, int, int]) -> tuple[np.ndarray, ...]:
+    """A batch worker's job: the batch of frames `idx` with its own generator seeded by (seed, step)."""
+    idx, crop, focus, seed, step = job
+    assert _WORKER_FRAMES is not None
+    return _batch_arrays(_WORKER_FRAMES, idx, crop, focus, np.random.default_rng([seed, step, 11]))
+
+
+class BatchSource:
+    """Training batches in order: made in this process (`workers` 0: one generator, the historic runs' crops)
+    or by `workers` forked processes ahead of the training loop (each batch seeded by (seed, step), so the
+    crops do not depend on the number of workers)."""
+
+    def __init__(self, frames: Frames, batch: int, crop: tuple[int, int], focus: float, seed: int,
+                 rng: np.random.Generator, workers: int = 0) -> None:  # fmt: skip
+        self.frames, self.batch, self.crop, self.focus, self.seed, self.rng = frames, batch, crop, focus, seed, rng
+        self.order, self.cursor = rng.permutation(len(frames)), 0
+        self.pool = None
+        self.ahead = 0
+        self.pending: list = []
+        self.step = 0
+        if workers > 0:
+            import multiprocessing
+
+            global _WORKER_FRAMES
+            _WORKER_FRAMES = frames
+            self.pool = multiprocessing.get_context("fork").Pool(workers)
+            self.ahead = 4 * workers
+
+    def _next_idx(self) -> np.ndarray:
+        if self.cursor + self.batch > len(self.frames):
+            self.order, self.cursor = self.rng.permutation(len(self.frames)), 0
+        idx = self.order[self.cursor : self.cursor + self.batch]
+        self.cursor += self.batch
+        return idx
+
+    def next(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The next batch (numpy arrays, `_batch_arrays`)."""
+        if self.pool is None:
+            return _batch_arrays(self.frames, self._next_idx(), self.crop, self.focus, self.rng)
+        while len(self.pending) < self.ahead:
+            job = (self._next_idx(), self.crop, self.focus, self.seed, self.step + len(self.pending))
+            self.pending.append(self.pool.apply_async(_worker_batch, (job,)))
+        self.step += 1
+        return self.pending.pop(0).get()
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.terminate()
 
 
 def _dice_loss(logits, target, n_classes: int):  # torch tensors
@@ -421,6 +481,9 @@ def train(
     thaw_norms: bool = False,
     log: bool = True,
     refine: int | None = None,
+    device: str = "cpu",
+    workers: int = 0,
+    weights_out: Path | None = None,
 ) -> dict:
     """Train on the bundles in `data_dirs`, export the ONNX model to `out`; return the training facts.
 
@@ -440,6 +503,9 @@ def train(
     `refine` is the width of the sub-pixel refinement stage (`build_model`; None: the `init` model's,
     else 0, none). A larger one than the `init` model's 0 adds the stage to it, starting from exactly
     what the model computed; any other change of width is refused (`PerceptionError`).
+    `device` is the torch device that trains (`cpu`, `cuda`); `workers` forked processes make the batches
+    ahead of it (`BatchSource`; 0: this process, the crops of the runs in perception/models/README.md).
+    `weights_out`: also save the trained weights there (`torch.save` of the state dict) before the export.
     `log=False` prints nothing (tests).
     """
     import torch
@@ -494,19 +560,20 @@ def train(
             say(f"fine-tuning {init} (batch norms frozen)")
     n_params = sum(p.numel() for p in model.parameters())
     say(f"SegNet channels {list(channels)}, refine {refine}: {n_params / 1e6:.3f} M parameters")
+    model = model.to(device)
+    weights = weights.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     total = steps if steps is not None else 10**9
     t0 = time.time()
     t10 = t0
     step = 0
     running = []
-    order = rng.permutation(n)
-    cursor = 0
+    source = BatchSource(frames, batch, crop, focus, seed, rng, workers)
+    # `minutes`: the speed is measured once the workers' head start is used up
+    measure_from, measure_steps = (10, 10) if workers == 0 else (10 + source.ahead, 40)
+    stopped_early = False
     while step < total:
-        if cursor + batch > n:
-            order, cursor = rng.permutation(n), 0
-        x, y, tops = _batch(frames, order[cursor : cursor + batch], crop, focus, rng)
-        cursor += batch
+        x, y, tops = (torch.from_numpy(a).to(device, non_blocking=True) for a in source.next())
         for group in opt.param_groups:
             group["lr"] = learning_rate(step, total, lr)
         logits = model(x, tops)
@@ -518,18 +585,24 @@ def train(
         opt.step()
         step += 1
         running.append(loss.item())
-        if step == 10:
+        if step == measure_from:
             t10 = time.time()
-        if minutes is not None and step == 20:
-            per_step = (time.time() - t10) / 10
-            total = max(40, int((60.0 * minutes - (time.time() - t0)) / per_step) + 20)
-            say(f"{per_step:.2f} s per step: training for {total} steps (--steps {total} repeats this run)")
+        if minutes is not None and step == measure_from + measure_steps:
+            per_step = (time.time() - t10) / measure_steps
+            total = max(40, int((60.0 * minutes - (time.time() - t0)) / per_step) + step)
+            say(f"{per_step:.3f} s per step: training for {total} steps (--steps {total} repeats this run)")
+        if minutes is not None and time.time() - t0 > 66.0 * minutes:  # the speed changed: stop in time
+            say(f"step {step}: past {minutes} min by a tenth, stopping ({total} were planned)")
+            stopped_early = True
+            break
         if step % 50 == 0:
             say(
                 f"step {step}/{total} epoch {step * batch / n:.2f} loss {np.mean(running[-50:]):.4f} "
                 f"lr {learning_rate(step, total, lr):.2e} {(time.time() - t0) / 60:.1f} min"
             )
+    source.close()
     minutes_used = (time.time() - t0) / 60.0
+    model = model.cpu()
     facts = {
         "seed": seed,
         "steps": step,
@@ -544,13 +617,18 @@ def train(
         "weight_power": weight_power,
         "dice": dice,
         "threads": threads,
+        "device": device,
+        "workers": workers,
         "train_minutes": round(minutes_used, 1),
+        **({"stopped_early": True} if stopped_early else {}),
         "data": [Path(d).name for d in data_dirs],
     }
     if init_facts is not None:
         facts["fine_tuned"] = True
         facts["batch_norms"] = "re-estimated, trained" if thaw_norms else "frozen"
         facts["init"] = init_facts
+    if weights_out is not None:  # the weights as torch saves them, in case the export fails
+        torch.save(model.state_dict(), weights_out)
     export_onnx(model, out, facts, log)
     return facts
 
@@ -634,6 +712,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=None, help="peak learning rate (default 4e-3, 1e-3 with --init)")
     ap.add_argument("--init", type=Path, default=None, help="fine-tune from the weights of this ONNX model")
     ap.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    ap.add_argument("--device", default="cpu", help="torch device that trains: cpu, cuda, cuda:1, ...")
+    ap.add_argument("--workers", type=int, default=0, help="processes that make the batches ahead (0: none)")
+    ap.add_argument("--weights-out", type=Path, default=None, help="also save the torch weights (state dict) here")
     ap.add_argument(
         "--thaw-norms", action="store_true", help="with --init: re-estimate the batch norms on the data and train them"
     )
@@ -661,6 +742,9 @@ def main(argv: list[str] | None = None) -> int:
             args.init,
             args.thaw_norms,
             refine=args.refine,
+            device=args.device,
+            workers=args.workers,
+            weights_out=args.weights_out,
         )
     except PerceptionError as exc:  # bad input: one line, exit 2
         print(exc, file=sys.stderr)

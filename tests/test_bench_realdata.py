@@ -101,6 +101,8 @@ def test_known_labeller_gives_known_figures(tmp_path):
     assert r["box_iou"] == round(500 / 1260, 4)
     assert r["box_iou_mean"] == round((400 / 860 + 0.25) / 2, 4)
     assert r["fronts_covered"] == {"count": 1, "total": 2, "share": 0.5}  # A exactly half: covered
+    # photo a's 560 pallet px lie in the grown boxes; photo b has no fronts, so its 560 px are all outside
+    assert r["pallet_outside_boxes"] == {"of_pallet_px": 0.5, "of_photo_px": round(560 / (2 * W * H), 4)}
     assert r["goals"]["front_recall"] == {"goal": 0.8, "met": False}
     assert r["goals"]["fronts_covered_share"] == {"goal": 0.9, "met": False}
     assert (r["photos_all_covered"], r["photos_none_covered"]) == (0, 0)

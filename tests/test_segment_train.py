@@ -87,6 +87,26 @@ def test_thawed_batch_norms_compute_what_the_imported_model_computes():
     assert float((after - before).abs().max()) < 1e-4 * float(before.abs().max())
 
 
+def test_batches_made_by_workers_do_not_depend_on_how_many():
+    from palletpilot.perception.train_segmentation import CROP, BatchSource, Frames
+
+    frames = Frames([EXAMPLE])
+
+    def batches(workers: int) -> list[tuple[np.ndarray, ...]]:
+        source = BatchSource(frames, 2, CROP, 0.75, seed=4, rng=np.random.default_rng(4), workers=workers)
+        try:
+            return [source.next() for _ in range(5)]
+        finally:
+            source.close()
+
+    one, three = batches(1), batches(3)
+    for a, b in zip(one, three, strict=True):
+        assert all(np.array_equal(u, v) for u, v in zip(a, b, strict=True))
+    x, y, tops = one[0]
+    assert x.shape == (2, 3, CROP[1], CROP[0]) and x.dtype == np.float32 and y.dtype == np.int64 and tops.shape == (2,)
+    assert not all(np.array_equal(one[0][0], other[0]) for other in one[1:])  # each step its own crops
+
+
 def test_an_added_refinement_stage_starts_from_the_model_and_survives_export(tmp_path):
     torch = pytest.importorskip("torch")
     pytest.importorskip("onnx")
