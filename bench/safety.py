@@ -303,7 +303,7 @@ def _one(spec: dict[str, Any]) -> dict[str, Any]:
         wall = time.perf_counter() - t0
         highest, over = _travel_heights(folder / "report", run.sim.vehicle)
     sim = run.sim
-    outcomes = [r.result if r.result == "succeeded" else (r.reason or r.result) for r in run.runner.results]
+    outcomes: list[str] = [r.result if r.result == "succeeded" else (r.reason or r.result) for r in run.runner.results]
     outcomes += ["not_run"] * (len(spec["tasks"]) - len(outcomes))
     wrong = [
         p.id

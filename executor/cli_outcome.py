@@ -12,10 +12,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from palletpilot.executor import vocabulary
 from palletpilot.executor.controls import Controls
+from palletpilot.executor.vocabulary import Outcome
 
-EXIT_OK = 0
-EXIT_FAILED = 1
+EXIT_OK = vocabulary.EXIT_OK
+EXIT_FAILED = vocabulary.EXIT_FAILED
 """The mission (or the command's task) failed; the vehicle stands."""
 EXIT_BAD_INPUT = 2
 """Bad input: one line per problem on stderr, nothing done."""
@@ -29,9 +31,9 @@ def mission_outcome(result: Any, report: Path | None, as_json: bool, controls: C
     """Print a finished mission's summary on stdout (`as_json`: the report's summary as JSON, else one
     line per task and the outcome), write errors and the failed task on stderr, and return the exit
     code: 0 success, 3 success with an output not written, 128 + signal when a signal cancelled it,
-    else 1. `result`: a `RunResult` of `executor.app` or `executor.ros.robot` (`summary`, `success`,
-    `write_errors`, `runner.results`); `report`: its report folder; `vehicle`: the word for what was
-    stopped ("vehicle", "truck")."""
+    else the failed task's reason's (`executor.vocabulary.REASONS`: 1). `result`: a `RunResult` of
+    `executor.app` or `executor.ros.robot` (`summary`, `success`, `write_errors`, `runner.results`);
+    `report`: its report folder; `vehicle`: the word for what was stopped ("vehicle", "truck")."""
     if as_json:
         print(json.dumps(result.summary, indent=2))
     else:
@@ -44,10 +46,11 @@ def mission_outcome(result: Any, report: Path | None, as_json: bool, controls: C
         print(f"error: {line}", file=sys.stderr)
     if result.success:
         return EXIT_WRITE_FAILED if result.write_errors else EXIT_OK
-    failed = next((t for t in result.runner.results if t.result != "succeeded"), None)
+    failed = next((t for t in result.runner.results if t.result != Outcome.SUCCEEDED), None)
     if failed is not None:
         why = f"{failed.reason}: {failed.message}"
         print(f"mission failed: task {failed.index} ({failed.type}): {why}; {vehicle} stopped", file=sys.stderr)
     if controls.cancel_signal is not None:
         return 128 + controls.cancel_signal
-    return EXIT_FAILED
+    meta = None if failed is None or failed.reason is None else vocabulary.info(failed.reason)
+    return EXIT_FAILED if meta is None else meta.exit_code

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.executor.behaviour import Behaviour, Context
-from palletpilot.executor.errors import CONTROLLER_ERROR, NO_ROUTE, TaskFailed
+from palletpilot.executor.errors import CONTROLLER_ERROR, NO_ROUTE, Reason, TaskFailed
 from palletpilot.roadmap import Direction, NodeType, RoadmapError, reference_path
 from palletpilot.roadmap.planner import Route
 
@@ -167,12 +167,14 @@ class Charge(Behaviour):
         self.until = ctx.now() + 60.0 * (ctx.task.minutes or 0.0)
         self.timeout_s = 60.0 * (ctx.task.minutes or 240.0) + 10.0
         if ctx.task.until_level is not None and getattr(ctx.vehicle, "battery_level", None) is None:
-            raise TaskFailed("no_battery_reading", "charging until a level needs a battery reading this vehicle lacks")
+            raise TaskFailed(
+                Reason.NO_BATTERY_READING, "charging until a level needs a battery reading this vehicle lacks"
+            )
 
     def update(self, ctx: Context) -> str | None:
         if ctx.task.until_level is not None:
             level = getattr(ctx.vehicle, "battery_level", None)
             if level is None:
-                raise TaskFailed("no_battery_reading", "the battery reading was lost while charging")
+                raise TaskFailed(Reason.NO_BATTERY_READING, "the battery reading was lost while charging")
             return "done" if level >= ctx.task.until_level else None
         return "done" if ctx.now() >= self.until else None

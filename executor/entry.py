@@ -25,7 +25,7 @@ from collections.abc import Callable
 
 from palletpilot.executor.behaviour import Behaviour, Context
 from palletpilot.executor.calibration_trust import calibration_for_checks
-from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
+from palletpilot.executor.errors import SAFETY_CHECK_FAILED, Reason, TaskFailed
 from palletpilot.geometry import SE2
 from palletpilot.perception.clearance import Volume, VolumeCheck
 from palletpilot.perception.pallet import PalletEstimate
@@ -156,7 +156,7 @@ class CheckVolume(Behaviour):
     def __init__(
         self,
         volume: Callable[[Context], tuple[Volume, float] | None],
-        reason: str,
+        reason: Reason,
         what: str,
         fit: Callable[[Context], list[str]] | None = None,
     ) -> None:

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from palletpilot.executor.vocabulary import Outcome, Reason
+
 
 @dataclass
 class TaskResult:
@@ -18,8 +20,8 @@ class TaskResult:
     index: int
     type: str
     node: str | None
-    result: str = "pending"
-    reason: str | None = None
+    result: Outcome = Outcome.PENDING
+    reason: Reason | None = None
     message: str | None = None
     attempts: int = 0
     start_s: float = 0.0
@@ -44,4 +46,7 @@ class TaskResult:
     @classmethod
     def from_json(cls, doc: dict[str, Any]) -> TaskResult:
         """The inverse of `to_json`."""
-        return cls(**doc)
+        result = cls(**doc)
+        result.result = Outcome(result.result)
+        result.reason = None if result.reason is None else Reason(result.reason)
+        return result

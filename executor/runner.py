@@ -35,11 +35,10 @@ from palletpilot.executor.errors import (
     CANCELLED,
     COLLISION,
     INTERNAL_ERROR,
-    LOCALIZATION_FAULT,
     PATH_BLOCKED,
     SENSOR_TIMEOUT,
     TIMEOUT,
-    VEHICLE_FAULT,
+    Reason,
     TaskFailed,
 )
 from palletpilot.executor.jobs import Jobs
@@ -49,6 +48,7 @@ from palletpilot.executor.progress import Progress
 from palletpilot.executor.results import TaskResult
 from palletpilot.executor.resume import Checkpointer, ResumePoint
 from palletpilot.executor.tasks import behaviours, build_machine
+from palletpilot.executor.vocabulary import STAY_STOPPED, Outcome
 from palletpilot.executor.watchdog import CommandedVehicle, WatchdogLimits, Watchdogs
 from palletpilot.geometry import angle_diff
 from palletpilot.geometry.fileio import dumps_json
@@ -76,8 +76,6 @@ _DRIVING_STATES = (
     "back_off",
     _RETURN_STATE,
 )
-STAY_STOPPED = frozenset({COLLISION, SENSOR_TIMEOUT, INTERNAL_ERROR, VEHICLE_FAULT, LOCALIZATION_FAULT, CANCELLED})
-"""Failures after which the truck stays stopped where it is, whatever `return_on_failure` says."""
 PARK_POSE_TOLERANCE_M = 0.25
 PARK_YAW_TOLERANCE_DEG = 10.0
 """After a failure the truck drives to a parking node only from a node it stands on within these."""
@@ -213,7 +211,7 @@ class Runner:
             for i in range(first, len(self.mission.tasks)):
                 result = self._run_task(i, self.mission.tasks[i], state if i == first else None)
                 self.results.append(result)
-                if result.result != "succeeded":
+                if result.result != Outcome.SUCCEEDED:
                     ok = False
                     break
                 self._checkpoint(i + 1, None, None)
@@ -253,7 +251,7 @@ class Runner:
                 self.resume_point.restore_task(self, result)
             behaviour: Behaviour | None = None
             entered, active = self.clock.now(), 0.0  # active: time in the state while not paused
-            while model.state not in ("succeeded", "failed"):
+            while model.state not in (Outcome.SUCCEEDED, Outcome.FAILED):
                 state = model.state
                 trigger: str | None = None
                 try:
@@ -287,9 +285,9 @@ class Runner:
                     route = ctx.last_route
                     ctx.route_to_pre = list(route.nodes) if route and route.nodes[-1] == ctx.pre_node else []
             self._stop_safely(result.reason or "task end")
-            if model.state == "failed" and self.mission.returns_on_failure(task, self.settings.return_on_failure):
+            if model.state == Outcome.FAILED and self.mission.returns_on_failure(task, self.settings.return_on_failure):
                 self._return_on_failure(result)  # inside the overlay: it may back out over temporary edges
-        result.result = model.state
+        result.result = Outcome(model.state)
         result.attempts = ctx.attempts
         result.end_s = self.clock.now()
         self._log("task_end", task=index, result=result.result, reason=result.reason)
@@ -362,7 +360,7 @@ class Runner:
             )
         return True
 
-    def _fail(self, result: TaskResult | None, state: str | None, reason: str, message: str) -> str:
+    def _fail(self, result: TaskResult | None, state: str | None, reason: Reason, message: str) -> str:
         if result is not None and result.reason is None:
             result.reason, result.message = reason, message
         self.stops.append({"t_s": round(self.clock.now(), 3), "reason": reason, "speed": self._speed()})

@@ -49,6 +49,7 @@ from palletpilot.executor.errors import (
     TaskFailed,
 )
 from palletpilot.executor.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck, approach_route
+from palletpilot.executor.vocabulary import Outcome
 from palletpilot.roadmap.planner import Route
 
 __all__ = [
@@ -92,7 +93,7 @@ class TaskSpec:
     transitions: tuple[tuple[str, str, str], ...]
 
 
-_FINAL = ("succeeded", "failed")
+_FINAL = (Outcome.SUCCEEDED.value, Outcome.FAILED.value)
 TASK_SPECS: dict[str, TaskSpec] = {
     "pickup": TaskSpec(
         (

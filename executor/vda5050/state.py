@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from palletpilot.control.vehicle import VehicleParams
+from palletpilot.executor import vocabulary
 from palletpilot.executor.vda5050.actions import CATALOGUE, LOAD_HANDLING_DEVICE
 from palletpilot.executor.vda5050.models import AgvError, ConnectionState, ErrorLevel, EStop, OperatingMode
 from palletpilot.executor.vda5050.orders import OrderManager
@@ -35,8 +36,9 @@ from palletpilot.perception.specs import BUILTIN_PALLETS, PalletType
 
 DRIVING_SPEED = 0.01
 """m/s: the truck counts as driving above this speed."""
-FATAL_REASONS = frozenset({"collision", "vehicle_fault", "localization_fault", "internal_error"})
-"""Task failure reasons after which the truck needs a person (FATAL); all others are WARNINGs."""
+FATAL_REASONS = vocabulary.FATAL_REASONS
+"""Task failure reasons after which the truck needs a person (FATAL); all others are WARNINGs. Derived
+from the reason table (`executor.vocabulary.REASONS`)."""
 
 
 def error_type(reason: str) -> str:
