@@ -6,7 +6,7 @@ Modules (public API in each module's docstring):
   data (`TASK_SPECS`, `build_machine`) and their behaviours (`behaviour`, `driving`, `pickup`,
   `entry`: the entry and drop-slot checks).
 - `ports`: the interfaces the runner drives (`VehiclePort`, `PerceptionService`), apart from their
-  implementations (the simulator in `sim`, `LocalPerception` here, a robot adapter later).
+  implementations (the simulator in `sim`, `local_perception.LocalPerception`, the ROS 2 adapter in `ros`).
 - `runner`: `Runner`, the per-tick loop: behaviours, watchdogs, pause / cancel, fail-safe stops,
   checkpoints; `clock` (`SimClock`, `WallClock`), `jobs` (perception off the loop), `watchdog`,
   `controls` (signals), `errors` (`TaskFailed` and the reason codes), `results` (`TaskResult`).

@@ -29,8 +29,8 @@ from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.clock import Clock, SimClock, WallClock
 from palletpilot.executor.controls import Controls
 from palletpilot.executor.journal import Journal, JournalError
+from palletpilot.executor.local_perception import LocalPerception
 from palletpilot.executor.mission import Mission, MissionError, load_mission, validate_mission
-from palletpilot.executor.ports import LocalPerception
 from palletpilot.executor.recording import SimFeed, start_recording
 from palletpilot.executor.report import REPORT_FILES, ms_stats, summary, write_report
 from palletpilot.executor.resume import Checkpointer, ResumeError, ResumePoint

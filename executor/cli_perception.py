@@ -104,8 +104,8 @@ def _default_listen() -> str:
 
 def _build(args: argparse.Namespace) -> PerceptionServer:
     """The server with its perception, model and camera; every input problem at once (`PerceptionError`)."""
+    from palletpilot.executor.local_perception import LocalPerception
     from palletpilot.executor.perception_server import PerceptionServer
-    from palletpilot.executor.ports import LocalPerception
     from palletpilot.geometry.fileio import bundled_path
     from palletpilot.perception.depth_tare import load_tare
     from palletpilot.perception.errors import PerceptionError

@@ -1,4 +1,4 @@
-"""The `Clock` port: the runner's time base and its 20 Hz tick.
+"""The `Clock` port's implementations (the protocol is in `executor.ports`): the runner's time base and its 20 Hz tick.
 
 - `SimClock`: simulated time. `tick()` advances the simulator by one control period and returns at
   once: deterministic, much faster than real time. `deterministic` is True, so work that runs off the
@@ -15,32 +15,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from palletpilot.executor.ports import Clock
+
+__all__ = ["CONTROL_DT", "Clock", "SimClock", "WallClock"]
+
 CONTROL_DT = 0.05
 """The control period (s): 20 Hz."""
-
-
-class Clock(Protocol):
-    """The runner's time: `now()` in seconds since the start, `tick()` to the next control period."""
-
-    dt: float
-    deterministic: bool
-    overrun_streak: int
-
-    def now(self) -> float:
-        """Seconds since the start of the run."""
-        ...
-
-    def tick(self) -> None:
-        """Advance to the next control tick (simulate one period, or sleep until it is due)."""
-        ...
-
-    def stats(self) -> dict[str, Any]:
-        """Tick statistics for the report (see the module docstring)."""
-        ...
 
 
 class SimClock:

@@ -37,7 +37,7 @@ from typing import Any, Literal
 
 import zenoh
 
-from palletpilot.executor.ports import LocalPerception
+from palletpilot.executor.local_perception import LocalPerception
 from palletpilot.perception import wire
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import CalibrationError, PerceptionError

@@ -1,29 +1,38 @@
-"""The executor's ports to the world: the vehicle and perception (ARCHITECTURE.md).
+"""The executor's ports to the world: the vehicle, perception, the clock, and the typed vocabulary
+(ARCHITECTURE.md).
 
-`sim.simulator.Simulator` implements `VehiclePort` and `CameraSource` directly; a robot adapter
-implements them for the real forklift. `LocalPerception` is the in-process `PerceptionService`.
+`sim.simulator.Simulator` implements `VehiclePort` directly; `executor.ros.vehicle.RosVehicle` implements
+it for the real forklift. `executor.local_perception.LocalPerception` is the in-process
+`PerceptionService`, `executor.perception_remote` the client of the perception service.
 `PassThroughVehicle` is the base of a `VehiclePort` that wraps another and changes or watches a few of
-its calls (the watchdog's, the recorder's).
-The `Clock` port is in `executor.clock`. Times (`localization_stamp`, frame stamps) are on the
-runner's clock, in seconds.
+its calls (the watchdog's, the recorder's). `Clock` is the runner's time base (implemented in
+`executor.clock`). `Reason` and `Outcome` are the typed vocabulary (`executor.vocabulary`).
+Times (`localization_stamp`, frame stamps) are on the runner's clock, in seconds.
+
+Light by contract: this module imports the standard library and the vocabulary only (the types of the
+signatures under `TYPE_CHECKING`), so `import palletpilot.executor.ports` loads no perception, control,
+numpy or scipy (import-linter, pyproject).
+
+Public API: `VehiclePort`, `PassThroughVehicle`, `PerceptionService`, `Clock`, `Reason`, `Outcome`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from palletpilot.control.safety import SafetyState
-from palletpilot.geometry import SE2
-from palletpilot.perception.calibration import Calibrator, Method
-from palletpilot.perception.calibration_io import Calibration
-from palletpilot.perception.clearance import Volume, VolumeCheck, check_volume
-from palletpilot.perception.depth_tare import DepthTare, correct_depth
-from palletpilot.perception.frames import FrameBundle
-from palletpilot.perception.geometry_labels import DEFAULT_ENVELOPE, DEFAULT_LABELS_MODE, Envelope, LabelsMode
-from palletpilot.perception.pallet import PalletEstimate, estimate_pallet, estimator_config
-from palletpilot.perception.segmentation import SegmentationService
-from palletpilot.perception.specs import ForkGeometry, PalletType
+from palletpilot.executor.vocabulary import Outcome, Reason
+
+if TYPE_CHECKING:
+    from palletpilot.control.safety import SafetyState
+    from palletpilot.geometry import SE2
+    from palletpilot.perception.calibration_io import Calibration
+    from palletpilot.perception.clearance import Volume, VolumeCheck
+    from palletpilot.perception.frames import FrameBundle
+    from palletpilot.perception.pallet import PalletEstimate
+    from palletpilot.perception.specs import PalletType
+
+__all__ = ["Clock", "Outcome", "PassThroughVehicle", "PerceptionService", "Reason", "VehiclePort"]
 
 
 @runtime_checkable
@@ -133,77 +142,22 @@ class PerceptionService(Protocol):
         """The last successful calibration."""
 
 
-class LocalPerception:
-    """`PerceptionService` in this process: labels from the frame or a segmenter, then the geometry.
+class Clock(Protocol):
+    """The runner's time: `now()` in seconds since the start, `tick()` to the next control period
+    (`executor.clock`: `SimClock`, `WallClock`)."""
 
-    `depth_tare`: the camera's measured depth scale error (`perception.depth_tare`), removed from every
-    frame before use; none for a camera without one (the simulator's, unless a scenario says otherwise).
-    `labels`: which source selects the pallet's, the floor's and the forks' pixels
-    (`perception.geometry_labels.LabelsMode`; `geometry` never runs the segmenter); `envelope`: how far
-    the pallet may stand from where it is expected (the geometry's search region).
-    """
+    dt: float
+    deterministic: bool
+    overrun_streak: int
 
-    def __init__(
-        self,
-        forks: ForkGeometry,
-        pallet: PalletType | None = None,
-        method: Method = "model",
-        segmenter: SegmentationService | None = None,
-        depth_tare: DepthTare | None = None,
-        labels: LabelsMode = DEFAULT_LABELS_MODE,
-        envelope: Envelope = DEFAULT_ENVELOPE,
-    ) -> None:
-        self.forks = forks
-        self.pallet = pallet or PalletType.eur()
-        self.labels = labels
-        self.envelope = envelope
-        self.calibrator = Calibrator(forks, method, labels=labels)
-        self.segmenter = segmenter
-        self.depth_tare = depth_tare
-        self.pallet_config = estimator_config(depth_tared=depth_tare is not None)  # the spread knows the tare
+    def now(self) -> float:
+        """Seconds since the start of the run."""
+        ...
 
-    def _labelled(self, frame: FrameBundle) -> FrameBundle:
-        frame = correct_depth(frame, self.depth_tare)
-        if frame.labels is not None or self.segmenter is None or self.labels == LabelsMode.GEOMETRY:
-            return frame
-        from palletpilot.perception.segmentation import ensure_labels
+    def tick(self) -> None:
+        """Advance to the next control tick (simulate one period, or sleep until it is due)."""
+        ...
 
-        return ensure_labels(frame, self.segmenter)
-
-    def calibrate(self, frames: Sequence[FrameBundle]) -> Calibration:
-        """Calibrate; on failure the last good calibration stays in `last_good`."""
-        return self.calibrator.calibrate([self._labelled(f) for f in frames])
-
-    def estimate_pallet(
-        self,
-        frame: FrameBundle,
-        calibration: Calibration,
-        T_world_forklift: SE2,
-        expected_T_world_pallet: SE2 | None = None,
-        pallet: PalletType | None = None,
-        support_height_m: float = 0.0,
-    ) -> PalletEstimate:
-        """Estimate the pallet's pose in the forklift and world frames; with `expected_T_world_pallet`
-        (world) only the pallet instance standing there is fitted; `pallet`: the type (default: this
-        service's); `support_height_m`: what it stands on (m above the floor)."""
-        expected = None if expected_T_world_pallet is None else T_world_forklift.inv() @ expected_T_world_pallet
-        return estimate_pallet(
-            self._labelled(frame),
-            calibration,
-            pallet or self.pallet,
-            T_world_forklift=T_world_forklift,
-            expected=expected,
-            config=self.pallet_config,
-            labels=self.labels,
-            support_height_m=support_height_m,
-            envelope=self.envelope,
-        )
-
-    def check_volume(self, frame: FrameBundle, calibration: Calibration, volume: Volume) -> VolumeCheck:
-        """Depth points inside `volume` (forklift frame) and the share of it the camera saw."""
-        return check_volume(correct_depth(frame, self.depth_tare), calibration, volume)
-
-    @property
-    def last_good(self) -> Calibration | None:
-        """The last successful calibration."""
-        return self.calibrator.last_good
+    def stats(self) -> dict[str, Any]:
+        """Tick statistics for the report (`executor.clock`'s docstring)."""
+        ...

@@ -131,7 +131,7 @@ def test_the_type_is_in_doubt_when_as_many_frames_refuse_it_as_find_it():
 def _pickup_with_refusals(tmp_path: Path, monkeypatch, refuse_every: int):
     """A pickup of a EUR pallet whose frames are refused for the type (`pockets_inconsistent`) on every
     `refuse_every`-th call of the estimator, from the first on."""
-    from palletpilot.executor.ports import LocalPerception
+    from palletpilot.executor.local_perception import LocalPerception
     from palletpilot.perception.pallet import PalletNotFound
 
     calls = {"n": 0}

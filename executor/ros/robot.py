@@ -35,8 +35,9 @@ from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.clock import WallClock
 from palletpilot.executor.controls import Controls
 from palletpilot.executor.journal import Journal
+from palletpilot.executor.local_perception import LocalPerception
 from palletpilot.executor.mission import Mission, load_mission, validate_mission
-from palletpilot.executor.ports import LocalPerception, PerceptionService
+from palletpilot.executor.ports import PerceptionService
 from palletpilot.executor.recording import Recorder, start_recording
 from palletpilot.executor.report import REPORT_FILES, ms_stats, summary, write_report
 from palletpilot.executor.resume import Checkpointer

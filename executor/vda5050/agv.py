@@ -52,8 +52,9 @@ from typing import TYPE_CHECKING, Any
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.controls import Controls
 from palletpilot.executor.errors import CANCELLED
+from palletpilot.executor.local_perception import LocalPerception
 from palletpilot.executor.mission import Mission
-from palletpilot.executor.ports import LocalPerception, VehiclePort
+from palletpilot.executor.ports import VehiclePort
 from palletpilot.executor.results import TaskResult
 from palletpilot.executor.runner import Runner
 from palletpilot.executor.vda5050 import validation

@@ -28,7 +28,8 @@ from palletpilot.control.follower import Follower
 from palletpilot.control.mpc import MpcConfig, MpcFollower
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.clock import Clock, WallClock
-from palletpilot.executor.ports import LocalPerception, PerceptionService, VehiclePort
+from palletpilot.executor.local_perception import LocalPerception
+from palletpilot.executor.ports import PerceptionService, VehiclePort
 from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.geometry import PalletpilotError
 from palletpilot.perception.frames import FrameBundle
@@ -101,7 +102,7 @@ def sim_backend(
 ) -> Backend:
     """The simulated warehouse of a scenario on the wall clock (its map must be the config's); `labels` as
     `run --labels` (`executor.app.Labels`)."""
-    from palletpilot.executor.ports import LocalPerception
+    from palletpilot.executor.local_perception import LocalPerception
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.sim.faults import FaultInjector
     from palletpilot.sim.scenario import load_scenario
