@@ -36,8 +36,6 @@ if TYPE_CHECKING:
 _ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws|unixsock-stream)/(.+)")
 _HOST_PORT = re.compile(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})")
 _KEY_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
-PARENT_ENV = "PALLETPILOT_SERVE_PARENT"
-"""Set by `executor.perception_remote.LocalService`: the service exits when the process of this id is gone."""
 
 
 def endpoint(text: str) -> str:
@@ -77,7 +75,7 @@ def cmd_perception_serve(args: argparse.Namespace) -> int:
         keep_heap_mapped()  # every request brings a frame of megabytes: reuse its pages
         server = _build(args)
         with server:
-            from palletpilot.executor.perception_server import zenoh_config
+            from palletpilot.executor.perception_server import PARENT_ENV, zenoh_config
 
             listen = args.listen or ([] if args.connect else [_default_listen()])
             server.start(zenoh_config(listen=listen, connect=args.connect or []))

@@ -52,9 +52,8 @@ from typing import Any, Literal, cast
 
 import zenoh
 
-from palletpilot.executor.cli_perception import PARENT_ENV
 from palletpilot.executor.errors import SAFETY_CHECK_FAILED, TaskFailed
-from palletpilot.executor.perception_server import DEFAULT_LISTEN, zenoh_config, zenoh_problem
+from palletpilot.executor.perception_server import DEFAULT_LISTEN, PARENT_ENV, zenoh_config, zenoh_problem
 from palletpilot.executor.processes import end_process, free_port, keep_heap_mapped
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import dumps_json

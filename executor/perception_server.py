@@ -47,6 +47,9 @@ from palletpilot.perception.realsense import CameraSource
 from palletpilot.perception.segmentation import OnnxSegmenter
 from palletpilot.perception.specs import PalletType
 
+PARENT_ENV = "PALLETPILOT_SERVE_PARENT"
+"""Set by `executor.perception_remote.LocalService`: the service exits when the process of this id is gone."""
+
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """Where `palletpilot perception serve` listens unless told (loopback: the same computer only)."""
 DEFAULT_QUEUE_SIZE = 4

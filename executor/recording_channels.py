@@ -167,13 +167,11 @@ class RecordingError(PalletpilotError):
 def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
     """`--foxglove [PORT]` and `--foxglove-host HOST`: serve the run's channels live over the Foxglove
     WebSocket protocol on HOST:PORT (default 127.0.0.1:8765); for `run` and any command that records a run."""
-    from palletpilot.executor.cli_args import count
-
     parser.add_argument(
         "--foxglove",
         nargs="?",
         const=FOXGLOVE_PORT,
-        type=count(0, 65535),
+        type=_port,
         metavar="PORT",
         help=f"also show the run live in Foxglove (ws://127.0.0.1:PORT, default {FOXGLOVE_PORT}; 0: any free port)",
     )
@@ -183,6 +181,17 @@ def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
         metavar="HOST",
         help="the address --foxglove serves on (default 127.0.0.1, this machine only; 0.0.0.0: every interface)",
     )
+
+
+def _port(text: str) -> int:
+    """An argparse type: a TCP port 0..65535 (the adapter's own; it imports no CLI module)."""
+    try:
+        value = int(text, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got '{text}'") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be an integer in 0..65535, got '{text}'")
+    return value
 
 
 class RecordingVehicle(PassThroughVehicle):

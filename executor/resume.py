@@ -25,12 +25,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from palletpilot.executor.behaviour import TemporaryNodes
-from palletpilot.executor.journal import Journal
 from palletpilot.executor.results import TaskResult
 from palletpilot.geometry import SE2, SE3, PalletpilotError
 from palletpilot.perception.calibration_io import Calibration
 
 if TYPE_CHECKING:
+    from palletpilot.executor.journal import Journal
     from palletpilot.executor.runner import Runner
 
 RESUME_POSE_TOLERANCE_M = 0.25
