@@ -6,12 +6,13 @@ from __future__ import annotations
 import json
 import sqlite3
 
-from palletpilot.executor import errors, vocabulary
-from palletpilot.executor.results import TaskResult
-from palletpilot.executor.runner import STAY_STOPPED
-from palletpilot.executor.vda5050.models import ErrorLevel
-from palletpilot.executor.vda5050.state import FATAL_REASONS, error_type, reason_level
-from palletpilot.executor.vocabulary import REASONS, Outcome, Reason
+from palletpilot.executor.apps.vda5050.models import ErrorLevel
+from palletpilot.executor.apps.vda5050.state import FATAL_REASONS, error_type, reason_level
+from palletpilot.executor.core import errors
+from palletpilot.executor.core.results import TaskResult
+from palletpilot.executor.core.runner import STAY_STOPPED
+from palletpilot.executor.ports import vocabulary
+from palletpilot.executor.ports.vocabulary import REASONS, Outcome, Reason
 
 
 def test_every_reason_has_its_metadata() -> None:
