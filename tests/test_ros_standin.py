@@ -27,7 +27,7 @@ import pytest
 
 from palletpilot.executor.adapters.mcap.recording_channels import TOPICS
 from palletpilot.executor.adapters.ros.config import load_robot
-from palletpilot.executor.adapters.ros.standin_camera import (
+from palletpilot.executor.apps.standin.camera import (
     CameraProcess,
     CameraState,
     apply_camera_state,
@@ -107,7 +107,7 @@ def test_child_dies_with_its_parent_even_on_sigkill() -> None:
         f"""
         import time
         from palletpilot.executor.adapters.ros.config import load_robot
-        from palletpilot.executor.adapters.ros.standin_camera import CameraProcess
+        from palletpilot.executor.apps.standin.camera import CameraProcess
         from palletpilot.sim.scenario import Scenario
         from palletpilot.geometry.fileio import bundled_path
         sc = Scenario.model_validate({{"map": "warehouse.yaml", "start": "b1"}})

@@ -179,8 +179,8 @@ def cmd_sim_serve(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     require_cyclonedds()
     from palletpilot.executor.adapters.ros.config import load_robot
-    from palletpilot.executor.adapters.ros.standin import StandIn
     from palletpilot.executor.adapters.ros.transport import open_transport
+    from palletpilot.executor.apps.standin.truck import StandIn
     from palletpilot.geometry.errors import collect, raise_problems
     from palletpilot.sim.scenario import load_scenario
     from palletpilot.sim.simulator import Simulator
@@ -201,7 +201,7 @@ def cmd_sim_serve(args: argparse.Namespace) -> int:
         sim = Simulator(scenario, seed=args.seed)
         view = None
         if args.foxglove is not None:
-            from palletpilot.executor.adapters.ros.standin_foxglove import StandInView
+            from palletpilot.executor.apps.standin.foxglove import StandInView
 
             view = StandInView(sim, args.foxglove, args.foxglove_host)  # a port it cannot serve: exit 2
         transport = None

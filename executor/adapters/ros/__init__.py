@@ -1,4 +1,4 @@
-"""On-robot execution over ROS 2: the vehicle adapter, its transports, and the simulator as a stand-in truck.
+"""On-robot execution over ROS 2: the vehicle adapter, its camera sources and its transports.
 
 Modules:
 
@@ -9,10 +9,10 @@ Modules:
 - `config`: the robot file (`robot.yaml`): topics, frames, QoS, rates, timeouts, the safety convention.
 - `vehicle`: `RosVehicle`, the executor's `VehiclePort` on those topics.
 - `camera`: `RosCamera` (realsense-ros topics) and `RealSenseCamera` (pyrealsense2): frame bundles.
-- `standin`: `StandIn`, the simulator playing the truck on the same topics (`palletpilot sim serve --ros`).
 
 The composition roots over this adapter are apps: `executor.apps.robot` (`run_robot`, `open_backend`) and
-`executor.apps.cli_robot` (the commands, and the `calibrate --ros-static-tf` output).
+`executor.apps.cli_robot` (the commands, and the `calibrate --ros-static-tf` output); the simulator playing
+the truck on the same topics is `executor.apps.standin` (`palletpilot sim serve --ros`).
 
 Frames follow REP 103 / 105 (`map`, `odom`, `base_link`, `camera_color_optical_frame`); units are SI (m,
 rad, s) on every topic. The public names below load on first use, so importing the package stays cheap.
@@ -37,7 +37,6 @@ _EXPORTS = {
     "RosVehicle": "vehicle",
     "RosCamera": "camera",
     "RealSenseCamera": "camera",
-    "StandIn": "standin",
 }
 
 __all__ = sorted(_EXPORTS)

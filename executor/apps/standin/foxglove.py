@@ -38,7 +38,7 @@ from palletpilot.executor.adapters.mcap.recording_sim import SimFeed
 from palletpilot.geometry import SE3
 
 if TYPE_CHECKING:
-    from palletpilot.executor.adapters.ros.standin import StandIn
+    from palletpilot.executor.apps.standin.truck import StandIn
     from palletpilot.sim.simulator import Simulator
 
 EVERY_TICKS = 2

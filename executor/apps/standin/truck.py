@@ -47,8 +47,8 @@ import numpy as np
 
 from palletpilot.executor.adapters.ros import messages as msgs
 from palletpilot.executor.adapters.ros.config import RobotConfig
-from palletpilot.executor.adapters.ros.standin_camera import CameraProcess, camera_messages, camera_state
 from palletpilot.executor.adapters.ros.transport import Transport
+from palletpilot.executor.apps.standin.camera import CameraProcess, camera_messages, camera_state
 from palletpilot.geometry import SE2
 from palletpilot.sim.simulator import BEAM_MAX_RANGE_M, Simulator
 

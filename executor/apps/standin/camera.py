@@ -200,11 +200,11 @@ def _child(conn: Connection) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """`python -m palletpilot.executor.adapters.ros.standin_camera FD`: the camera child on socket FD (inherited)."""
+    """`python -m palletpilot.executor.apps.standin.camera FD`: the camera child on socket FD (inherited)."""
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or not args[0].isdigit():
         print(
-            "usage: python -m palletpilot.executor.adapters.ros.standin_camera FD (started by the stand-in)",
+            "usage: python -m palletpilot.executor.apps.standin.camera FD (started by the stand-in)",
             file=sys.stderr,
         )
         return 2
@@ -232,7 +232,7 @@ class CameraProcess:
         self.publish = publish
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "palletpilot.executor.adapters.ros.standin_camera", str(theirs.fileno())],
+                [sys.executable, "-m", "palletpilot.executor.apps.standin.camera", str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
@@ -333,6 +333,6 @@ class CameraProcess:
 
 
 if __name__ == "__main__":
-    from palletpilot.executor.adapters.ros import standin_camera  # the module proper: one copy of its classes
+    from palletpilot.executor.apps.standin import camera as standin_camera  # the module proper: one copy of its classes
 
     sys.exit(standin_camera.main())
