@@ -26,17 +26,26 @@ from typing import TYPE_CHECKING, Any, Literal, TextIO
 from palletpilot.control.mpc import MpcConfig, MpcFollower
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.executor.adapters.local_perception import LocalPerception
-from palletpilot.executor.adapters.mcap.recording import SimFeed, start_recording
+from palletpilot.executor.adapters.mcap.recording import Recorder, SimFeed, start_recording
 from palletpilot.executor.adapters.stores.journal import Journal, JournalError
-from palletpilot.executor.adapters.stores.report import REPORT_FILES, ms_stats, summary, write_report
+from palletpilot.executor.adapters.stores.report import ms_stats, summary
 from palletpilot.executor.adapters.stores.trajectory_log import TrajectoryLog
+from palletpilot.executor.apps.compose import (
+    Outputs,
+    Parts,
+    build_runner,
+    open_events,
+    prepare_report_dir,
+    run_and_finish,
+    write_run_report,
+)
 from palletpilot.executor.core.behaviour import Settings
 from palletpilot.executor.core.clock import Clock, SimClock, WallClock
 from palletpilot.executor.core.controls import Controls
 from palletpilot.executor.core.mission import Mission, MissionError, load_mission, validate_mission
-from palletpilot.executor.core.resume import Checkpointer, ResumeError, ResumePoint
+from palletpilot.executor.core.resume import ResumeError, ResumePoint
 from palletpilot.executor.core.runner import Runner
-from palletpilot.geometry import OutputError
+from palletpilot.executor.ports import PerceptionService
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.perception.frames import FrameBundle
@@ -102,18 +111,6 @@ def _sha256(path: Path) -> str:
         raise ResumeError(f"{path}: cannot read: {exc.strerror or exc}") from None
 
 
-def _prepare_report_dir(folder: Path, fresh: bool) -> None:
-    """Create the folder; a fresh run removes the previous run's report files first."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        if fresh:
-            for name in REPORT_FILES:
-                with contextlib.suppress(FileNotFoundError):
-                    (folder / name).unlink()
-    except OSError as exc:
-        raise OutputError(f"{folder}: cannot prepare the report folder: {exc.strerror or exc}") from None
-
-
 def run_simulated(
     mission_path: str | Path,
     scenario_path: str | Path | None = None,
@@ -169,7 +166,7 @@ def run_simulated(
         book = Journal.create(journal, meta)
     run_id = book.meta["run_id"] if book is not None else uuid.uuid4().hex
     if folder is not None:
-        _prepare_report_dir(folder, fresh=True)
+        prepare_report_dir(folder, fresh=True)
     return _execute(
         mission,
         roadmap,
@@ -177,21 +174,14 @@ def run_simulated(
         sim,
         scenario,
         folder,
-        adapt,
+        RunOptions(adapt, clock, labels, perception, tuple(perception_connect), foxglove, foxglove_host, record),
         settings,
         progress,
         on_start,
-        clock,
         book,
         controls,
         run_id,
         None,
-        labels=labels,
-        perception_mode=perception,
-        perception_connect=perception_connect,
-        foxglove_port=foxglove,
-        record=record,
-        foxglove_host=foxglove_host,
     )
 
 
@@ -289,7 +279,7 @@ def resume_simulated(
     vehicle = load_vehicle(vehicle_file) if vehicle_file else sim.vehicle
     folder = Path(meta["report_dir"]) if meta.get("report_dir") else None
     if folder is not None:
-        _prepare_report_dir(folder, fresh=False)
+        prepare_report_dir(folder, fresh=False)
     return _execute(
         mission,
         roadmap,
@@ -297,17 +287,32 @@ def resume_simulated(
         sim,
         scenario,
         folder,
-        bool(meta["adapt"]),
+        # journals from before the `labels` option ran on the simulator's labels
+        RunOptions(bool(meta["adapt"]), meta.get("clock", "sim"), labels=meta.get("labels", "truth")),
         settings,
         progress,
         on_start,
-        meta.get("clock", "sim"),
         book,
         controls,
         str(meta["run_id"]),
         point,
-        labels=meta.get("labels", "truth"),  # journals from before the option ran on the simulator's labels
     )
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a simulated run runs, fixed before it starts (the arguments of `run_simulated`): `adapt`, the
+    `clock` kind, the `labels` perception takes, the `perception` mode and where its service is, the live
+    view's port and host (`foxglove`, None: none), and whether run.mcap is written (`record`)."""
+
+    adapt: bool = True
+    clock: ClockKind = "sim"
+    labels: Labels = "fused"
+    perception: PerceptionMode = "local"
+    perception_connect: tuple[str, ...] = ()
+    foxglove: int | None = None
+    foxglove_host: str = "127.0.0.1"
+    record: bool = True
 
 
 def _execute(
@@ -317,51 +322,28 @@ def _execute(
     sim: Simulator,
     scenario: Scenario,
     folder: Path | None,
-    adapt: bool,
+    options: RunOptions,
     settings: Settings | None,
     progress: TextIO | None,
     on_start: Callable[[Runner], None] | None,
-    clock_kind: ClockKind,
     book: Journal | None,
     controls: Controls | None,
     run_id: str,
     point: ResumePoint | None,
-    labels: Labels = "fused",
-    perception_mode: PerceptionMode = "local",
-    perception_connect: Sequence[str] = (),
-    foxglove_port: int | None = None,
-    record: bool = True,
-    foxglove_host: str = "127.0.0.1",
 ) -> SimRun:
+    """The simulator's `Parts` and the run's `Outputs`, wired by `compose`; run, then the report."""
     settings = settings or Settings()
-    settings.adapt = adapt
-    injector = FaultInjector(scenario.faults, sim, realtime=clock_kind == "wall")
+    settings.adapt = options.adapt
+    wall = options.clock == "wall"
+    injector = FaultInjector(scenario.faults, sim, realtime=wall)
     if point is not None:
         injector.skip_until(point.t)
         injector.skip_states(point.started_states())
-    perception, grab = None, injector.grab
     recorder = start_recording(
-        folder if record else None, foxglove_port, clock_kind == "wall", point is not None, foxglove_host
+        folder if options.record else None, options.foxglove, wall, point is not None, options.foxglove_host
     )
     if recorder is not None and recorder.port is not None and progress is not None:
-        progress.write(f"foxglove: live on ws://{foxglove_host}:{recorder.port}\n")
-    try:
-        if adapt:
-            segmenter = None
-            if labels != SIM_TRUTH:  # the truck's view: no labels from the simulator
-                grab = _without_labels(injector.grab)
-                if labels != LabelsMode.GEOMETRY and perception_mode == "local":  # RGB through the shipped model
-                    segmenter = OnnxSegmenter(DEFAULT_MODEL)  # (a service segments with its own)
-            if recorder is not None and segmenter is not None:  # run.mcap: the labels perception segmented
-                segmenter = recorder.wrap_segmenter(segmenter)
-            if perception_mode == "local":
-                local = LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter, labels=labels_mode(labels))
-                perception = injector.perception(local)
-    except BaseException:
-        if recorder is not None:  # the file finished, the port freed
-            recorder.close()
-        raise
-
+        progress.write(f"foxglove: live on ws://{options.foxglove_host}:{recorder.port}\n")
     log: TrajectoryLog | None = None
 
     def step(dt: float) -> None:
@@ -373,82 +355,93 @@ def _execute(
             pose = sim.true_pose
             log.row(sim.time, pose.x, pose.y, pose.yaw, sim.speed, sim.fork_height, sim.load_detected())
 
-    start_s = point.t if point is not None else 0.0
-    clock: Clock = SimClock(step, start_s=start_s) if clock_kind == "sim" else WallClock(step=step, start_s=start_s)
-    # Simulated time waits for each solve: no wall-clock deadline, so the machine's load cannot change a
-    # seeded run (the report gives the solve times). On a wall clock a late solve brakes.
-    deadline = None if clock_kind == "sim" else MpcConfig().solve_deadline_s
-    follower = MpcFollower(vehicle, MpcConfig(solve_deadline_s=deadline))
-    follower.step_fault = injector.step_failure
-    write_errors: list[str] = []
     with contextlib.ExitStack() as stack:
-        if recorder is not None:
+        if recorder is not None:  # the file finished, the port freed, however the run ends
             stack.callback(recorder.close)
-            grab = recorder.wrap_grab(grab)
-        if adapt and perception_mode != "local":  # the service is stopped when the run ends, however it ends
-            from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
-
-            service = remote_perception(
-                perception_mode,
-                perception_connect,
-                sim.forks,
-                sim.pallet_type,
-                DEFAULT_MODEL,
-                labels=labels_mode(labels),
-            )
-            perception = injector.perception(stack.enter_context(service))
-        events = None
+        perception, grab = _perception(sim, injector, recorder, stack, options)
+        start_s = point.t if point is not None else 0.0
+        clock: Clock = WallClock(step=step, start_s=start_s) if wall else SimClock(step, start_s=start_s)
+        events = open_events(folder, stack, append=point is not None)
         if folder is not None:
-            try:
-                events = stack.enter_context((folder / "events.jsonl").open("a" if point else "w"))
-            except OSError as exc:
-                raise OutputError(f"{folder / 'events.jsonl'}: cannot write: {exc.strerror or exc}") from None
             log = TrajectoryLog(folder / "trajectory.csv", resume_t=point.t if point else None)
             stack.callback(log.close)
         if book is not None:
             stack.callback(book.close)
-        runner = Runner(
-            mission,
-            roadmap,
-            injector.vehicle,
-            perception,
-            grab,
-            clock,
-            vehicle,
-            sim.forks,
-            scenario.start,
-            settings=settings,
-            follower=follower,
-            events=events,
-            progress=progress,
-            controls=controls,
-            checkpointer=Checkpointer(book, sim.snapshot) if book is not None else None,
-            resume=point,
-            listeners=[injector.observe],
+        outputs = Outputs(events, book, recorder)
+        parts = Parts(
+            mission, roadmap, injector.vehicle, perception, grab, clock, vehicle, sim.forks, scenario.start,
+            _follower(vehicle, wall, injector), (injector.observe,),
+        )  # fmt: skip
+        world = sim.snapshot if book is not None else None
+        runner = build_runner(parts, outputs, settings, progress, controls, point, world, SimFeed(sim))
+        start = {"run_id": run_id, "seed": sim.seed, "clock": options.clock} if point is None else None
+        success, write_errors = run_and_finish(
+            runner, outputs, lambda: _extra(sim, clock, options.adapt, run_id, point, injector, runner), start, on_start
         )
-        if recorder is not None:
-            recorder.attach(runner, SimFeed(sim))
-        if point is None:
-            runner._log("run_start", run_id=run_id, seed=sim.seed, clock=clock_kind)
-        if on_start is not None:
-            on_start(runner)
-        success = runner.run()
-        if recorder is not None:
-            recorder.finish(success, _extra(sim, clock, adapt, run_id, point, injector, runner))
-        if book is not None:
-            try:
-                book.finish(success, None if success else _first_reason(runner))
-            except JournalError as exc:
-                write_errors.append(str(exc))
     if recorder is not None:
         write_errors += recorder.errors
-    report = None
-    if folder is not None:
-        try:
-            report = _write(folder, mission, success, runner, sim, clock, adapt, run_id, point, injector)
-        except OutputError as exc:
-            write_errors.append(str(exc))
+    extra = _extra(sim, clock, options.adapt, run_id, point, injector, runner)
+    truth = [(p.T_world_pallet).to_se2() for p in sim.pallets]
+    report = write_run_report(folder, runner, success, extra, write_errors, truth, sim.obstacle_outlines())
     return SimRun(success, runner, sim, summary(success, runner.results), report, write_errors)
+
+
+def _follower(vehicle: VehicleParams, wall: bool, injector: FaultInjector) -> MpcFollower:
+    """The MPC path follower. Simulated time waits for each solve: no wall-clock deadline, so the machine's
+    load cannot change a seeded run (the report gives the solve times). On a wall clock a late solve brakes."""
+    deadline = MpcConfig().solve_deadline_s if wall else None
+    follower = MpcFollower(vehicle, MpcConfig(solve_deadline_s=deadline))
+    follower.step_fault = injector.step_failure
+    return follower
+
+
+def _perception(
+    sim: Simulator, injector: FaultInjector, recorder: Recorder | None, stack: contextlib.ExitStack, options: RunOptions
+) -> tuple[PerceptionService | None, Callable[[], FrameBundle]]:
+    """Perception of a simulated run (None without `adapt`) and the camera's `grab`: in process, or the
+    service (`remote`, `serve-local`), stopped with `stack` however the run ends; see `_local_perception`."""
+    perception, grab = _local_perception(sim, injector, recorder, options.adapt, options.labels, options.perception)
+    if options.adapt and options.perception != "local":
+        from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
+
+        service = remote_perception(
+            options.perception,
+            options.perception_connect,
+            sim.forks,
+            sim.pallet_type,
+            DEFAULT_MODEL,
+            labels=labels_mode(options.labels),
+        )
+        perception = injector.perception(stack.enter_context(service))
+    return perception, grab
+
+
+def _local_perception(
+    sim: Simulator,
+    injector: FaultInjector,
+    recorder: Recorder | None,
+    adapt: bool,
+    labels: Labels,
+    perception_mode: PerceptionMode,
+) -> tuple[PerceptionService | None, Callable[[], FrameBundle]]:
+    """In-process perception of a simulated run (None without `adapt` or with a service) and the camera's
+    `grab`: without the simulator's labels unless `labels` is `truth`, segmented by the shipped model in
+    this process for `fused` and `model` (a service segments with its own)."""
+    perception: PerceptionService | None = None
+    grab: Callable[[], FrameBundle] = injector.grab
+    if not adapt:
+        return perception, grab
+    segmenter = None
+    if labels != SIM_TRUTH:  # the truck's view: no labels from the simulator
+        grab = _without_labels(injector.grab)
+        if labels != LabelsMode.GEOMETRY and perception_mode == "local":  # RGB through the shipped model
+            segmenter = OnnxSegmenter(DEFAULT_MODEL)
+    if recorder is not None and segmenter is not None:  # run.mcap: the labels perception segmented
+        segmenter = recorder.wrap_segmenter(segmenter)
+    if perception_mode == "local":
+        local = LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter, labels=labels_mode(labels))
+        perception = injector.perception(local)
+    return perception, grab
 
 
 def _without_labels(grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle]:
@@ -458,36 +451,6 @@ def _without_labels(grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle
         return dataclasses.replace(grab(), labels=None)
 
     return frame
-
-
-def _first_reason(runner: Runner) -> str | None:
-    return next((r.reason for r in runner.results if r.reason), None)
-
-
-def _write(
-    folder: Path,
-    mission: Mission,
-    success: bool,
-    runner: Runner,
-    sim: Simulator,
-    clock: Clock,
-    adapt: bool,
-    run_id: str,
-    point: ResumePoint | None,
-    injector: FaultInjector,
-) -> Path:
-    return write_report(
-        folder,
-        mission.name,
-        success,
-        runner.results,
-        runner.ctx.roadmap,
-        runner.trajectory,
-        runner.ctx.planned_paths,
-        truth_pallets=[(p.T_world_pallet).to_se2() for p in sim.pallets],
-        obstacles=sim.obstacle_outlines(),
-        extra=_extra(sim, clock, adapt, run_id, point, injector, runner),
-    )
 
 
 def _extra(

@@ -19,6 +19,7 @@ which the Delivery's slot check uses when no Pickup calibrated on this run.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import importlib
 import math
@@ -35,15 +36,23 @@ from palletpilot.executor.adapters.local_perception import LocalPerception
 from palletpilot.executor.adapters.mcap.recording import Recorder, start_recording
 from palletpilot.executor.adapters.ros.config import RobotConfig, load_robot
 from palletpilot.executor.adapters.stores.journal import Journal
-from palletpilot.executor.adapters.stores.report import REPORT_FILES, ms_stats, summary, write_report
+from palletpilot.executor.adapters.stores.report import ms_stats, summary
+from palletpilot.executor.apps.compose import (
+    Outputs,
+    Parts,
+    build_runner,
+    open_events,
+    prepare_report_dir,
+    run_and_finish,
+    write_run_report,
+)
 from palletpilot.executor.core.behaviour import Settings
 from palletpilot.executor.core.clock import WallClock
 from palletpilot.executor.core.controls import Controls
 from palletpilot.executor.core.mission import Mission, load_mission, validate_mission
-from palletpilot.executor.core.resume import Checkpointer
 from palletpilot.executor.core.runner import Runner
 from palletpilot.executor.ports import PerceptionService
-from palletpilot.geometry import OutputError, PalletpilotError, angle_diff
+from palletpilot.geometry import PalletpilotError, angle_diff
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.calibration_io import Calibration, load_calibration
 from palletpilot.perception.frames import FrameBundle
@@ -256,40 +265,12 @@ def _execute(
     live: tuple[int | None, str] = (None, "127.0.0.1"),
     labels: LabelsMode = DEFAULT_LABELS_MODE,
 ) -> RobotRun:
-    """Build the runner on the connected truck and run the mission; write the report and `run.mcap`."""
-    from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
-    from palletpilot.perception.specs import PalletType
-
+    """Build the runner on the connected truck (`compose`) and run the mission; write the report and
+    `run.mcap`."""
     config, mission = inputs.config, inputs.mission
     settings = settings or Settings()
     settings.adapt = adapt
-    perception: PerceptionService | None = None
-    if adapt and perception_mode == "local":
-        segmenter = None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL)
-        local = LocalPerception(inputs.forks, PalletType.eur(), segmenter=segmenter, labels=labels)
-        local.calibrator.last_good = inputs.calibration
-        perception = local
-    elif adapt:
-        from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
-
-        service = remote_perception(
-            perception_mode,  # type: ignore[arg-type]
-            perception_connect,
-            inputs.forks,
-            PalletType.eur(),
-            DEFAULT_MODEL,
-            labels=labels,
-        )
-        perception = stack.enter_context(service)
-
-    def grab() -> FrameBundle:
-        if camera is None:
-            from palletpilot.perception.errors import PerceptionError
-
-            raise PerceptionError(f"{config.source}: camera.source: none")
-        frame: FrameBundle = camera.grab()
-        return frame
-
+    perception = _perception(inputs, stack, adapt, perception_mode, perception_connect, labels)
     folder = Path(report_dir).resolve() if report_dir is not None else None
     recorder: Recorder | None = None  # started once the report folder is clean
 
@@ -302,70 +283,116 @@ def _execute(
     vehicle.now = clock.now
     if camera is not None:
         camera.now = clock.now
-    follower = MpcFollower(inputs.params, MpcConfig())
     run_id = uuid.uuid4().hex
-    book = None
-    if journal is not None:
-        meta = {
-            "run_id": run_id,
-            "kind": "robot",
-            "mission": str(Path(mission_path).resolve()),
-            "mission_sha256": _sha256(Path(mission_path)),
-            "map_sha256": _sha256(mission.map_path),
-            "robot": str(Path(robot_path).resolve()),
-            "start": node,
-            "report_dir": None if folder is None else str(folder),
-            "adapt": adapt,
-            "clock": "wall",
-        }
-        book = Journal.create(journal, meta)
+    book = _journal(journal, run_id, mission_path, robot_path, mission, node, folder, adapt)
+    if book is not None:
         stack.callback(book.close)
-    events = None
     if folder is not None:
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            for name in REPORT_FILES:
-                with contextlib.suppress(FileNotFoundError):
-                    (folder / name).unlink()
-            events = stack.enter_context((folder / "events.jsonl").open("w"))
-        except OSError as exc:
-            raise OutputError(f"{folder}: cannot write the report: {exc.strerror or exc}") from None
+        prepare_report_dir(folder, fresh=True)
+    events = open_events(folder, stack)
     recorder = start_recording(folder, live[0], wall=True, host=live[1])  # RecordingError: a port in use
     if recorder is not None:
         stack.callback(recorder.close)
-        grab = recorder.wrap_grab(grab)
         if isinstance(perception, LocalPerception) and perception.segmenter is not None:
             perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
-    runner = Runner(
-        mission,
-        inputs.roadmap,
-        vehicle,
-        perception,
-        grab,
-        clock,
-        inputs.params,
-        inputs.forks,
-        node,
-        settings=settings,
-        follower=follower,
-        events=events,
-        progress=progress,
-        controls=controls,
-        checkpointer=Checkpointer(book) if book is not None else None,
-    )
+    outputs = Outputs(events, book, recorder)
+    parts = Parts(
+        mission, inputs.roadmap, vehicle, perception, _grab(camera, config.source), clock, inputs.params,
+        inputs.forks, node, MpcFollower(inputs.params, MpcConfig()),
+    )  # fmt: skip
+    runner = build_runner(parts, outputs, settings, progress, controls)
+    extra = functools.cache(lambda: _figures(runner, vehicle, clock, config.name, run_id, node, adapt))
+    start = {"run_id": run_id, "robot": config.name, "clock": "wall", "start": node}
+    success, write_errors = run_and_finish(runner, outputs, extra, start)
     if recorder is not None:
-        recorder.attach(runner)
-    runner._log("run_start", run_id=run_id, robot=config.name, clock="wall", start=node)
-    success = runner.run()
-    write_errors: list[str] = []
-    if book is not None:
-        try:
-            book.finish(success, next((r.reason for r in runner.results if r.reason), None))
-        except PalletpilotError as exc:
-            write_errors.append(str(exc))
-    extra = {
+        recorder.close()
+        write_errors += recorder.errors
+    report = write_run_report(folder, runner, success, extra(), write_errors)
+    return RobotRun(success, runner, summary(success, runner.results), report, write_errors)
+
+
+def _perception(
+    inputs: Inputs,
+    stack: contextlib.ExitStack,
+    adapt: bool,
+    perception_mode: str,
+    perception_connect: Sequence[str],
+    labels: LabelsMode,
+) -> PerceptionService | None:
+    """The truck's perception: in process (the shipped model unless `geometry`, the robot's calibration as
+    the last good one), the perception service (stopped with `stack`), or none without `adapt`."""
+    from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
+    from palletpilot.perception.specs import PalletType
+
+    if adapt and perception_mode == "local":
+        segmenter = None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL)
+        local = LocalPerception(inputs.forks, PalletType.eur(), segmenter=segmenter, labels=labels)
+        local.calibrator.last_good = inputs.calibration
+        return local
+    if not adapt:
+        return None
+    from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
+
+    service = remote_perception(
+        perception_mode,  # type: ignore[arg-type]
+        perception_connect,
+        inputs.forks,
+        PalletType.eur(),
+        DEFAULT_MODEL,
+        labels=labels,
+    )
+    return stack.enter_context(service)
+
+
+def _grab(camera: Any, source: str) -> Callable[[], FrameBundle]:
+    """The camera's next frame bundle; without a camera (`camera.source: none`) a `PerceptionError`."""
+
+    def grab() -> FrameBundle:
+        if camera is None:
+            from palletpilot.perception.errors import PerceptionError
+
+            raise PerceptionError(f"{source}: camera.source: none")
+        frame: FrameBundle = camera.grab()
+        return frame
+
+    return grab
+
+
+def _journal(
+    journal: str | Path | None,
+    run_id: str,
+    mission_path: str | Path,
+    robot_path: str | Path,
+    mission: Mission,
+    node: str,
+    folder: Path | None,
+    adapt: bool,
+) -> Journal | None:
+    """The run's SQLite journal at `journal` (None: none), created with the run's identity in its meta."""
+    if journal is None:
+        return None
+    meta = {
         "run_id": run_id,
-        "robot": config.name,
+        "kind": "robot",
+        "mission": str(Path(mission_path).resolve()),
+        "mission_sha256": _sha256(Path(mission_path)),
+        "map_sha256": _sha256(mission.map_path),
+        "robot": str(Path(robot_path).resolve()),
+        "start": node,
+        "report_dir": None if folder is None else str(folder),
+        "adapt": adapt,
+        "clock": "wall",
+    }
+    return Journal.create(journal, meta)
+
+
+def _figures(
+    runner: Runner, vehicle: Any, clock: WallClock, robot: str, run_id: str, node: str, adapt: bool
+) -> dict[str, Any]:
+    """The run's figures in report.json besides the tasks (also in run.mcap's `/report/run`)."""
+    return {
+        "run_id": run_id,
+        "robot": robot,
         "start": node,
         "adapt": adapt,
         "clock": clock.stats(),
@@ -374,26 +401,6 @@ def _execute(
         "drive_commands_sent": vehicle.commands_sent,
         "localization_age_ms": ms_stats(getattr(vehicle, "localization_age_s", [])),
     }
-    if recorder is not None:
-        recorder.finish(success, extra)
-        recorder.close()
-        write_errors += recorder.errors
-    report = None
-    if folder is not None:
-        try:
-            report = write_report(
-                folder,
-                mission.name,
-                success,
-                runner.results,
-                runner.ctx.roadmap,
-                runner.trajectory,
-                runner.ctx.planned_paths,
-                extra=extra,
-            )
-        except OutputError as exc:
-            write_errors.append(str(exc))
-    return RobotRun(success, runner, summary(success, runner.results), report, write_errors)
 
 
 def open_backend(
@@ -413,9 +420,8 @@ def open_backend(
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.perception.specs import PalletType
 
-    vda = importlib.import_module(
-        "palletpilot.executor.apps.vda5050.vehicle"
-    )  # the AGV's package, loaded by its caller
+    # the AGV's package, loaded by its caller
+    vda = importlib.import_module("palletpilot.executor.apps.vda5050.vehicle")
     problems: list[str] = []
     config = collect(problems, lambda: load_robot(robot_path))
     forks = collect(problems, lambda: load_forks(config.path(config.forks))) if config is not None else None
@@ -450,14 +456,6 @@ def open_backend(
     if camera is not None:
         camera.now = clock.now
 
-    def grab() -> FrameBundle:
-        if camera is None:
-            from palletpilot.perception.errors import PerceptionError
-
-            raise PerceptionError(f"{config.source}: camera.source: none")
-        frame: FrameBundle = camera.grab()
-        return frame
-
     def close() -> None:
         vehicle.close()
         if camera is not None:
@@ -472,7 +470,7 @@ def open_backend(
             segmenter=None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL),
             labels=labels,
         ),
-        grab=grab,
+        grab=_grab(camera, config.source),
         clock=clock,
         params=params,
         forks=forks,

@@ -70,7 +70,7 @@ class Checkpointer:
         cal = ctx.calibration
         doc = {
             "t": runner.clock.now(),
-            "paused_total_s": runner._paused_total,
+            "paused_total_s": runner.paused_total_s,
             "task": index,
             "state": state,
             "pose": [pose.x, pose.y, pose.yaw],
@@ -163,7 +163,7 @@ class ResumePoint:
         runner.trajectory = [(t, x, y, yaw) for cp in self.checkpoints for t, x, y, yaw in cp["trajectory"]]
         ctx.planned_paths = [[(x, y) for x, y in path] for cp in self.checkpoints for path in cp["planned"]]
         runner.stops = list(last["stops"])
-        runner._paused_total = float(last["paused_total_s"])
+        runner.paused_total_s = float(last["paused_total_s"])
         ctx.at_node = str(last["ctx"]["at_node"])
         ctx.heading = float(last["ctx"]["heading"])
         ctx.last_motion_s = self.t
@@ -190,4 +190,4 @@ class ResumePoint:
         ctx.temporary = []
         for spec in saved["temporary"]:
             add_temporary_nodes(ctx, TemporaryNodes.from_json(spec))
-        runner._log("task_resumed", task=result.index, state=self.state, attempts=ctx.attempts)
+        runner.log("task_resumed", task=result.index, state=self.state, attempts=ctx.attempts)

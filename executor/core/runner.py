@@ -48,7 +48,7 @@ from palletpilot.executor.core.results import TaskResult
 from palletpilot.executor.core.resume import Checkpointer, ResumePoint
 from palletpilot.executor.core.tasks import behaviours, build_machine
 from palletpilot.executor.core.watchdog import CommandedVehicle, WatchdogLimits, Watchdogs
-from palletpilot.executor.ports import PerceptionService, VehiclePort
+from palletpilot.executor.ports import PerceptionService, RunObserver, VehiclePort
 from palletpilot.executor.ports.vocabulary import STAY_STOPPED, Outcome
 from palletpilot.geometry import angle_diff
 from palletpilot.geometry.fileio import dumps_json
@@ -102,7 +102,7 @@ class Runner:
         controls: Controls | None = None,
         checkpointer: Checkpointer | None = None,
         resume: ResumePoint | None = None,
-        listeners: Sequence[Callable[[str, dict[str, Any], float], None]] = (),
+        listeners: Sequence[RunObserver] = (),
         watchdog_limits: WatchdogLimits | None = None,
     ) -> None:
         self.mission = mission
@@ -115,14 +115,14 @@ class Runner:
         self.progress = Progress(progress) if progress is not None else None
         self.controls = controls or Controls()
         self.checkpointer = checkpointer
-        self.listeners = list(listeners)
+        self.listeners: list[RunObserver] = list(listeners)
         self.results: list[TaskResult] = []
         self.trajectory: list[tuple[float, float, float, float]] = []  # t, x, y, yaw of localization
         self.stops: list[dict[str, Any]] = []  # every failure: when, at what speed, when the vehicle stood
         self.write_errors: list[str] = []
         self.watchdogs = Watchdogs(params, watchdog_limits)
         self._grab = grab
-        self._paused_total = 0.0
+        self.paused_total_s = 0.0
         self._paused_since: float | None = None
         self._blocked_since: float | None = None  # the scanners' protective stop holds the task since
         self._no_frame_since: float | None = None
@@ -141,7 +141,7 @@ class Runner:
             pallet_type=self.pallet_types[0] if self.pallet_types else PalletType.eur(),
             settings=self.settings,
             now=self.task_time,
-            log=self._log,
+            log=self.log,
             at_node=start_node,
             heading=start.pose.yaw,
             jobs=Jobs(clock.deterministic, clock.now),
@@ -166,13 +166,14 @@ class Runner:
 
     def task_time(self) -> float:
         """The clock less the time spent paused (s): what behaviours and path followers see."""
-        paused = self._paused_total
+        paused = self.paused_total_s
         if self._paused_since is not None:
             paused += self.clock.now() - self._paused_since
         return self.clock.now() - paused
 
     # -- recording ---------------------------------------------------------------------------
-    def _log(self, event: str, **data: Any) -> None:
+    def log(self, event: str, **data: Any) -> None:
+        """Record an event: a line of events.jsonl (`t` on the runner's clock, s) and every observer's call."""
         t = self.clock.now()
         if self.events is not None:
             self.events.write(dumps_json({"t": round(t, 3), "event": event, **data}) + "\n")
@@ -204,9 +205,9 @@ class Runner:
                 (0, None) if self.resume_point is None else (self.resume_point.task_index, self.resume_point.state)
             )
             if self.resume_point is None:
-                self._log("mission_start", name=self.mission.name, tasks=len(self.mission.tasks))
+                self.log("mission_start", name=self.mission.name, tasks=len(self.mission.tasks))
             else:
-                self._log("mission_resumed", task=first, state=state, resumes=self.resume_point.resumes)
+                self.log("mission_resumed", task=first, state=state, resumes=self.resume_point.resumes)
             ok = True
             for i in range(first, len(self.mission.tasks)):
                 result = self._run_task(i, self.mission.tasks[i], state if i == first else None)
@@ -222,7 +223,7 @@ class Runner:
             self._stop_safely("mission end")
             self.ctx.jobs.close()
         with contextlib.suppress(Exception):
-            self._log("mission_end", success=ok)
+            self.log("mission_end", success=ok)
         if self.progress is not None:
             self.progress.close()
         return ok
@@ -239,7 +240,7 @@ class Runner:
             ctx.temporary, ctx.route_to_pre = [], []
             if node is not None and task.type in ("pickup", "delivery"):
                 ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
-            self._log("task_start", index=index, type=task.type, node=node)
+            self.log("task_start", index=index, type=task.type, node=node)
         ctx.task = task
         ctx.pallet_type = self.pallet_types[index]
         ctx.record = result.record
@@ -259,7 +260,7 @@ class Runner:
                         self._checkpoint(index, state, result)
                         behaviour = table[state]()
                         entered, active = self.clock.now(), 0.0
-                        self._log("state_start", task=index, state=state)
+                        self.log("state_start", task=index, state=state)
                         behaviour.start(ctx)
                     trigger = self._tick(behaviour, state, active)
                 except TaskFailed as exc:
@@ -275,7 +276,7 @@ class Runner:
                 self._leave(behaviour, trigger)
                 end = round(self.clock.now(), 3)
                 result.states.append({"state": state, "start_s": round(entered, 3), "end_s": end, "outcome": trigger})
-                self._log("state_end", task=index, state=state, outcome=trigger)
+                self.log("state_end", task=index, state=state, outcome=trigger)
                 if state == "estimate_pallet" and trigger == "misaligned":
                     ctx.node_before = self._node_before()
                 getattr(model, trigger)()
@@ -290,7 +291,7 @@ class Runner:
         result.result = Outcome(model.state)
         result.attempts = ctx.attempts
         result.end_s = self.clock.now()
-        self._log("task_end", task=index, result=result.result, reason=result.reason)
+        self.log("task_end", task=index, result=result.result, reason=result.reason)
         return result
 
     def _tick(self, behaviour: Behaviour, state: str, active: float) -> str | None:
@@ -308,7 +309,7 @@ class Runner:
                 self._paused_since = self.clock.now()
                 vehicle.stop()
                 vehicle.set_fork_height(vehicle.fork_height)  # hold the forks where they are
-                self._log("paused", state=state)
+                self.log("paused", state=state)
                 if self.progress is not None:
                     self.progress.note(f"[{self.clock.now():7.1f} s] paused in {state} (SIGUSR2 resumes)")
             vehicle.stop()
@@ -316,10 +317,10 @@ class Runner:
         if self._blocked(behaviour, state):
             return _PAUSED
         if self._paused_since is not None:
-            self._paused_total += self.clock.now() - self._paused_since
+            self.paused_total_s += self.clock.now() - self._paused_since
             self._paused_since = None
             self.watchdogs.reset()
-            self._log("resumed", state=state)
+            self.log("resumed", state=state)
             if self.progress is not None:
                 self.progress.note(f"[{self.clock.now():7.1f} s] resumed in {state}")
             behaviour.resume(ctx)
@@ -335,14 +336,14 @@ class Runner:
         safety = self.vehicle.safety_state() if getattr(behaviour, "drives", False) else None
         if safety is None or not safety.protective_stop:
             if self._blocked_since is not None:
-                self._log("path_clear", state=state, waited_s=round(now - self._blocked_since, 2))
+                self.log("path_clear", state=state, waited_s=round(now - self._blocked_since, 2))
                 self._blocked_since = None
             return False
         if self._blocked_since is None:
             self._blocked_since = now
             if self._paused_since is None:
                 self._paused_since = now
-            self._log("path_blocked_hold", state=state, intrusions=list(safety.intrusions))
+            self.log("path_blocked_hold", state=state, intrusions=list(safety.intrusions))
             if self.progress is not None:
                 what = ", ".join(safety.intrusions) or "something"
                 self.progress.note(f"[{now:7.1f} s] path blocked by {what}: holding in {state}")
@@ -351,7 +352,7 @@ class Runner:
         if waited > self.settings.blocked_wait_s:
             self._blocked_since = None
             if self._paused_since is not None:  # the hold ends with the task
-                self._paused_total += now - self._paused_since
+                self.paused_total_s += now - self._paused_since
                 self._paused_since = None
             what = ", ".join(safety.intrusions) or "an object in the protective field"
             raise TaskFailed(
@@ -365,7 +366,7 @@ class Runner:
             result.reason, result.message = reason, message
         self.stops.append({"t_s": round(self.clock.now(), 3), "reason": reason, "speed": self._speed()})
         with contextlib.suppress(Exception):
-            self._log(
+            self.log(
                 "task_failed",
                 task=None if result is None else result.index,
                 state=state,
@@ -378,7 +379,7 @@ class Runner:
     def _internal_error(self, exc: BaseException, result: TaskResult | None, state: str | None = None) -> str:
         message = f"{type(exc).__name__}: {exc}"
         with contextlib.suppress(Exception):
-            self._log("internal_error", state=state, traceback=traceback.format_exc(limit=8))
+            self.log("internal_error", state=state, traceback=traceback.format_exc(limit=8))
         if result is None and self.results:
             result = self.results[-1]
         return self._fail(result, state, INTERNAL_ERROR, message)
@@ -391,7 +392,7 @@ class Runner:
             behaviour.stop(self.ctx)
         except Exception as exc:
             with contextlib.suppress(Exception):
-                self._log("stop_failed", error=f"{type(exc).__name__}: {exc}")
+                self.log("stop_failed", error=f"{type(exc).__name__}: {exc}")
             self._stop_safely("a behaviour's stop failed")
 
     def _speed(self) -> float | None:
@@ -406,7 +407,7 @@ class Runner:
         try:
             if abs(vehicle.speed) > QUICK_STOP_SPEED:
                 vehicle.emergency_stop()
-                self._log("safety_stop", why=why, speed=round(vehicle.speed, 3))
+                self.log("safety_stop", why=why, speed=round(vehicle.speed, 3))
             else:
                 vehicle.stop()
             t_end = self.clock.now() + limit_s
@@ -417,12 +418,12 @@ class Runner:
         except Exception as exc:
             standing = False
             with contextlib.suppress(Exception):
-                self._log("stop_error", error=f"{type(exc).__name__}: {exc}")
+                self.log("stop_error", error=f"{type(exc).__name__}: {exc}")
         if self.stops and "standstill_s" not in self.stops[-1]:
             self.stops[-1]["standstill_s"] = round(self.clock.now(), 3) if standing else None
         if not standing:
             with contextlib.suppress(Exception):
-                self._log("vehicle_not_stopped", why=why)
+                self.log("vehicle_not_stopped", why=why)
 
     def _track_motion(self) -> None:
         """Remember when the vehicle or its forks last moved (perception results must be newer)."""
@@ -498,15 +499,15 @@ class Runner:
         except Exception as exc:
             why = f"{INTERNAL_ERROR}: {type(exc).__name__}: {exc}"
             with contextlib.suppress(Exception):
-                self._log("internal_error", state=_RETURN_STATE, traceback=traceback.format_exc(limit=8))
+                self.log("internal_error", state=_RETURN_STATE, traceback=traceback.format_exc(limit=8))
         self._stop_safely("return on failure")
         with contextlib.suppress(Exception):
             if why is None:
                 record["parked"] = True
-                self._log("parked", task=result.index, node=ctx.at_node)
+                self.log("parked", task=result.index, node=ctx.at_node)
             else:
                 record["reason"] = why
-                self._log("return_failed", task=result.index, node=ctx.at_node, reason=why)
+                self.log("return_failed", task=result.index, node=ctx.at_node, reason=why)
 
     def _park(self, result: TaskResult, record: dict[str, Any]) -> str | None:
         """Drive to the nearest parking node (see `_return_on_failure`); None when there, else why the truck
@@ -542,7 +543,7 @@ class Runner:
             return f"no parking node ({types}: {names}) can be reached from '{ctx.at_node}'"
         goal, chosen = best.nodes[-1], best
         record["parking_node"], record["route_length_m"] = goal, round(best.length, 3)
-        self._log(
+        self.log(
             "returning_on_failure",
             task=result.index,
             failed=result.reason,

@@ -13,7 +13,11 @@ Light by contract: this module imports the standard library and the vocabulary o
 signatures under `TYPE_CHECKING`), so `import palletpilot.executor.ports` loads no perception, control,
 numpy or scipy (import-linter, pyproject).
 
-Public API: `VehiclePort`, `PassThroughVehicle`, `PerceptionService`, `Clock`, `Reason`, `Outcome`.
+`RunObserver` is how the run's outputs (the MCAP recorder, the fault injector, the AGV's notes) follow a
+run: the runner calls each observer with every event it logs; none reaches into the runner.
+
+Public API: `VehiclePort`, `PassThroughVehicle`, `PerceptionService`, `Clock`, `RunObserver`, `Reason`,
+`Outcome`.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ if TYPE_CHECKING:
     from palletpilot.perception.pallet import PalletEstimate
     from palletpilot.perception.specs import PalletType
 
-__all__ = ["Clock", "Outcome", "PassThroughVehicle", "PerceptionService", "Reason", "VehiclePort"]
+__all__ = ["Clock", "Outcome", "PassThroughVehicle", "PerceptionService", "Reason", "RunObserver", "VehiclePort"]
 
 
 @runtime_checkable
@@ -160,4 +164,14 @@ class Clock(Protocol):
 
     def stats(self) -> dict[str, Any]:
         """Tick statistics for the report (`executor.clock`'s docstring)."""
+        ...
+
+
+class RunObserver(Protocol):
+    """Follows a run: called with each event the runner logs (`event` name, its `data`, `t` on the runner's
+    clock in s), in the control loop's thread; it must not block. Given to the runner when it is built
+    (`Runner(..., listeners=[...])`), never swapped in afterwards."""
+
+    def __call__(self, event: str, data: dict[str, Any], t: float, /) -> None:
+        """One event of the run."""
         ...

@@ -230,18 +230,19 @@ class Recorder(RecorderCamera, RecorderEvents):
             self._last_ns = ns
         return ns
 
-    def _count(self, topic: str) -> None:
+    def count_message(self, topic: str) -> None:
+        """Count one message written on `topic` (the recording's per-channel figures)."""
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def log_scene(self, topic: str, update: Any, ns: int) -> None:
         """Log a SceneUpdate on a `/scene/...` topic."""
         self.scene[topic].log(update, log_time=ns)
-        self._count(topic)
+        self.count_message(topic)
 
     def log_json(self, topic: str, doc: Any, ns: int) -> None:
         """Log a JSON document (strict: non-finite numbers as null) on a JSON topic."""
         self.json[topic].log(dumps_json(doc).encode(), log_time=ns)
-        self._count(topic)
+        self.count_message(topic)
 
     def _fail(self, where: str, exc: BaseException) -> None:
         """An error inside the recorder: one line, and the recording stops (the run goes on)."""
@@ -261,14 +262,23 @@ class Recorder(RecorderCamera, RecorderEvents):
             self._pending_s += time.perf_counter() - t0
 
     # -- wiring -----------------------------------------------------------------------------------------
+    def wrap_vehicle(self, vehicle: VehiclePort) -> VehiclePort:
+        """The vehicle a single run's runner must be built on: it passes everything through to `vehicle` and
+        remembers what the executor read (localization, beams). Call before building the runner; the
+        recorder never swaps a runner's vehicle afterwards."""
+        self.vehicle = RecordingVehicle(vehicle, on_beams=self._beams_read)
+        return cast("VehiclePort", self.vehicle)
+
     def attach(self, runner: Runner, sim: SimFeed | None = None) -> None:
-        """Follow `runner`: its clock, its events (listener), its vehicle's readings (wrapped); record the
+        """Follow `runner`: its clock, its events (`on_event`, a `RunObserver`: given to the runner when it
+        was built, else subscribed here), the readings of the vehicle from `wrap_vehicle`; record the
         roadmap and the start. Call before the runner logs its first event. In a session: a new leg (the
         runner drives the session's vehicle wrapper; the roadmap was recorded at the session's start)."""
         self.runner = runner
         ctx = runner.ctx
         self._params, self._forks, self._roadmap, self._follower = ctx.params, ctx.forks, ctx.roadmap, ctx.follower
-        runner.listeners.append(self.on_event)
+        if self.on_event not in runner.listeners:
+            runner.listeners.append(self.on_event)
         if self._session:
             self._guard("leg", self._leg_start)
             return
@@ -276,9 +286,8 @@ class Recorder(RecorderCamera, RecorderEvents):
         self._now = runner.clock.now
         if self.wall:
             self._epoch_ns = time.time_ns() - round(runner.clock.now() * 1e9)
-        commanded = runner.vehicle  # the runner's CommandedVehicle: wrap what it wraps
-        self.vehicle = RecordingVehicle(commanded.inner, on_beams=self._beams_read)
-        commanded.inner = cast("VehiclePort", self.vehicle)
+        if self.vehicle is None:
+            raise ValueError("Recorder.attach: build the runner on Recorder.wrap_vehicle(vehicle) first")
         self._guard("start", lambda: self._start(runner.mission.name))
 
     def start_session(
@@ -430,7 +439,7 @@ class Recorder(RecorderCamera, RecorderEvents):
         tf = scene.tf_tree(ns, pose, mount)
         if tf is not None:
             self.ch_tf.log(tf, log_time=ns)
-            self._count("/tf")
+            self.count_message("/tf")
         loaded = bool(vehicle.load_detected())
         follower = self._follower
         assert follower is not None
@@ -460,7 +469,7 @@ class Recorder(RecorderCamera, RecorderEvents):
             "task": self._task_index,
         }
         self.json["/vehicle/state"].log(json.dumps(state).encode(), log_time=ns)
-        self._count("/vehicle/state")
+        self.count_message("/vehicle/state")
         self._horizon(follower, ns)
         planned = [] if runner is None else runner.ctx.planned_paths
         if runner is not None and len(planned) != self._paths_seen:

@@ -147,7 +147,7 @@ class RecorderCamera:
     _frame_stamps: dict[int, int]
     _last_frame: FrameBundle | None
     ns: Callable[..., int]
-    _count: Callable[[str], None]
+    count_message: Callable[[str], None]
     _guard: Callable[[str, Callable[[], None]], None]
 
     def wrap_grab(self, grab: Callable[[], FrameBundle]) -> Callable[[], FrameBundle]:
@@ -171,18 +171,18 @@ class RecorderCamera:
         stamp_ns = ns if f.stamp_s is None else self._epoch_ns + round(f.stamp_s * 1e9)
         h, w = f.depth.shape
         self.ch_caminfo.log(camera_info(f.K, w, h, stamp_ns), log_time=ns)
-        self._count("/camera/calibration")
+        self.count_message("/camera/calibration")
         if f.rgb is not None:
             self.ch_rgb.log(compressed_image(jpeg(f.rgb), stamp_ns), log_time=ns)
-            self._count("/camera/rgb")
+            self.count_message("/camera/rgb")
             with self._lock:
                 self._frame_stamps = {id(f.rgb): stamp_ns}  # the segmenter's next call belongs to it
         self.ch_depth.log(depth_cloud(f.depth, f.K, f.rgb, stamp_ns, DEPTH_STRIDE), log_time=ns)
-        self._count("/camera/depth")
+        self.count_message("/camera/depth")
         if f.labels is not None:
             self._overlay_now(f.rgb, f.labels, stamp_ns)
 
-    def _overlay(self, rgb: np.ndarray, labels: np.ndarray) -> None:
+    def overlay_segmentation(self, rgb: np.ndarray, labels: np.ndarray) -> None:
         """Labels perception segmented from `rgb` (any thread)."""
 
         def record() -> None:
@@ -195,4 +195,4 @@ class RecorderCamera:
     def _overlay_now(self, rgb: np.ndarray | None, labels: np.ndarray, stamp_ns: int) -> None:
         image = segmentation_overlay(rgb, labels)
         self.ch_seg.log(compressed_image(jpeg(image), stamp_ns), log_time=self.ns())
-        self._count("/camera/segmentation")
+        self.count_message("/camera/segmentation")

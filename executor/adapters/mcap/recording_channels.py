@@ -228,7 +228,7 @@ class RecordingSegmenter:
 
     def segment(self, rgb: np.ndarray) -> np.ndarray:
         labels = self.inner.segment(rgb)
-        self.recorder._overlay(rgb, labels)
+        self.recorder.overlay_segmentation(rgb, labels)
         return labels
 
     def __getattr__(self, name: str) -> Any:

@@ -41,7 +41,7 @@ class RecorderEvents:
     _state_started: dict[str, float]
     _estimates: list[Any]
     ns: Callable[[float | None], int]
-    _count: Callable[[str], None]
+    count_message: Callable[[str], None]
     log_json: Callable[[str, Any, int], None]
     log_scene: Callable[[str, Any, int], None]
 
@@ -56,7 +56,7 @@ class RecorderEvents:
             ),
             log_time=ns,
         )
-        self._count("/log")
+        self.count_message("/log")
         self.log_json("/events", {"t": round(t, 3), "event": event, **data}, ns)
         handler = getattr(self, f"_on_{event}", None)
         if handler is not None:

@@ -41,7 +41,7 @@ class SimFeed:
         rec.ch_true_pose.log(
             PoseInFrame(timestamp=scene.stamp(ns), frame_id=scene.MAP, pose=scene.pose_se2(pose)), log_time=ns
         )
-        rec._count("/sim/true_pose")
+        rec.count_message("/sim/true_pose")
         carried = any(p.carried for p in self.sim.pallets)
         if not carried or tick % PALLETS_EVERY == 0:
             self._pallets(rec, ns)
