@@ -41,6 +41,7 @@ import traceback
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from palletpilot.executor.adapters.mcap.recording_channels import add_foxglove_argument
 from palletpilot.executor.apps.cli_args import Parser, add_labels_argument, number, out_file, out_folder, seed
@@ -63,7 +64,7 @@ DEMO_MISSION = "pickup_delivery.yaml"
 DEMO_SCENARIO = "scenario_demo.yaml"
 
 # A function that adds sub-commands to the `palletpilot` parser (`palletpilot.bench.cli.add_parsers`).
-Extension = Callable[["argparse._SubParsersAction"], None]
+Extension = Callable[[Any], None]
 
 
 def _max_curvature(map_path: str, vehicle: str | None) -> tuple[float | None, str | None]:
@@ -304,11 +305,8 @@ def cmd_mission_diagram(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParser:
-    """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`)."""
-    parser = Parser(prog="palletpilot", description="Mission executor for automated forklifts.")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_map_and_plan(sub: Any) -> None:
+    """The `map check`, `map show` and `plan` commands."""
     map_p = sub.add_parser("map", help="check or draw a map file")
     map_sub = map_p.add_subparsers(dest="map_command", required=True)
     check = map_sub.add_parser("check", help="validate a map file (exit 2 listing every problem)")
@@ -328,6 +326,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     plan.add_argument("--json", action="store_true", help="print nodes, edges and length_m as JSON")
     plan.set_defaults(func=cmd_plan)
 
+
+def _add_run(sub: Any) -> None:
+    """The `run` command."""
     run = sub.add_parser("run", help="run a mission (in the simulated warehouse)")
     run.add_argument("mission", nargs="?", help="mission file (YAML)")
     run.add_argument("--demo", action="store_true", help=f"the bundled demo: {DEMO_MISSION} in {DEMO_SCENARIO}")
@@ -360,6 +361,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     add_foxglove_argument(run)
     run.set_defaults(func=cmd_run)
 
+
+def _add_examples_and_mission(sub: Any) -> None:
+    """The `examples` and `mission diagram` commands."""
     examples = sub.add_parser("examples", help="the bundled example files: list them, or copy them to edit")
     examples.add_argument("--out", type=out_folder, help="copy them into this folder (existing files are left alone)")
     examples.set_defaults(func=cmd_examples)
@@ -371,6 +375,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     diagram.add_argument("--out", type=out_file(), help="file to write (default: stdout)")
     diagram.set_defaults(func=cmd_mission_diagram)
 
+
+def _add_calibrate(sub: Any) -> None:
+    """The `calibrate` command."""
     cal = sub.add_parser("calibrate", help="calibrate the camera pose from the forks and the floor")
     cal.add_argument("frames", nargs="+", metavar="FRAME.npz", help="frame bundles with labels")
     cal.add_argument("--forks", required=True, help="fork geometry file (YAML)")
@@ -395,6 +402,9 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     )
     cal.set_defaults(func=cmd_calibrate)
 
+
+def _add_sim(sub: Any) -> None:
+    """The `sim render` command, and `sim serve --ros` (`executor.apps.cli_robot`)."""
     sim = sub.add_parser("sim", help="the simulated warehouse")
     sim_sub = sim.add_subparsers(dest="sim_command", required=True)
     render = sim_sub.add_parser("render", help="render one RGB-D frame bundle (.npz) of a scenario")
@@ -407,6 +417,18 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
     render.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     render.set_defaults(func=cmd_sim_render)
     importlib.import_module("palletpilot.executor.apps.cli_robot").add_sim_serve(sim_sub)  # sim serve --ros
+
+
+def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParser:
+    """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`)."""
+    parser = Parser(prog="palletpilot", description="Mission executor for automated forklifts.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    _add_map_and_plan(sub)
+    _add_run(sub)
+    _add_examples_and_mission(sub)
+    _add_calibrate(sub)
+    _add_sim(sub)
 
     # Commands defined next to the code they drive.
     for module in (

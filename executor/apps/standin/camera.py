@@ -128,7 +128,7 @@ def apply_camera_state(sim: Simulator, state: CameraState) -> None:
         p.T_world_pallet, p.loaded, p.carried = T_world_pallet, loaded, carried
     sim.walk_t = list(state.walk_t_s)
     if _resting_key(sim) != before:
-        sim._static_changed()  # the simulator's own hook for a changed set of resting pallets
+        sim.static_changed()  # the simulator's own hook for a changed set of resting pallets
 
 
 # -- the child ------------------------------------------------------------------------------------------------
