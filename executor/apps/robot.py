@@ -37,15 +37,7 @@ from palletpilot.executor.adapters.mcap.recording import Recorder, start_recordi
 from palletpilot.executor.adapters.ros.config import RobotConfig, load_robot
 from palletpilot.executor.adapters.stores.journal import Journal
 from palletpilot.executor.adapters.stores.report import ms_stats, summary
-from palletpilot.executor.apps.compose import (
-    Outputs,
-    Parts,
-    build_runner,
-    open_events,
-    prepare_report_dir,
-    run_and_finish,
-    write_run_report,
-)
+from palletpilot.executor.apps import compose
 from palletpilot.executor.core.behaviour import Settings
 from palletpilot.executor.core.clock import WallClock
 from palletpilot.executor.core.controls import Controls
@@ -288,26 +280,26 @@ def _execute(
     if book is not None:
         stack.callback(book.close)
     if folder is not None:
-        prepare_report_dir(folder, fresh=True)
-    events = open_events(folder, stack)
+        compose.prepare_report_dir(folder, fresh=True)
+    events = compose.open_events(folder, stack)
     recorder = start_recording(folder, live[0], wall=True, host=live[1])  # RecordingError: a port in use
     if recorder is not None:
         stack.callback(recorder.close)
         if isinstance(perception, LocalPerception) and perception.segmenter is not None:
             perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
-    outputs = Outputs(events, book, recorder)
-    parts = Parts(
+    outputs = compose.Outputs(events, book, recorder)
+    parts = compose.Parts(
         mission, inputs.roadmap, vehicle, perception, _grab(camera, config.source), clock, inputs.params,
         inputs.forks, node, MpcFollower(inputs.params, MpcConfig()),
     )  # fmt: skip
-    runner = build_runner(parts, outputs, settings, progress, controls)
+    runner = compose.build_runner(parts, outputs, settings, progress, controls)
     extra = functools.cache(lambda: _figures(runner, vehicle, clock, config.name, run_id, node, adapt))
     start = {"run_id": run_id, "robot": config.name, "clock": "wall", "start": node}
-    success, write_errors = run_and_finish(runner, outputs, extra, start)
+    success, write_errors = compose.run_and_finish(runner, outputs, extra, start)
     if recorder is not None:
         recorder.close()
         write_errors += recorder.errors
-    report = write_run_report(folder, runner, success, extra(), write_errors)
+    report = compose.write_run_report(folder, runner, success, extra(), write_errors)
     return RobotRun(success, runner, summary(success, runner.results), report, write_errors)
 
 
