@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, names, out_folder, seed
+from palletpilot.executor.apps.cli_args import count, names, out_folder, seed
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path, write_atomic
 from palletpilot.perception.calibration import METHODS, CalibrationError, Method, calibrate

@@ -8,8 +8,8 @@ import json
 import sys
 
 from palletpilot.bench import BENCHMARKS
-from palletpilot.executor.cli_args import Parser
-from palletpilot.executor.cli_outcome import EXIT_BAD_INPUT, EXIT_OK
+from palletpilot.executor.apps.cli_args import Parser
+from palletpilot.executor.apps.cli_outcome import EXIT_BAD_INPUT, EXIT_OK
 
 
 def cmd_bench(args: argparse.Namespace, extra: list[str]) -> int:

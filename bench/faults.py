@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from palletpilot.bench.missions import RACK_DEEPER_MAX_M, draw_pickup, example_pallet_nodes
-from palletpilot.executor.cli_args import count, number, seed
+from palletpilot.executor.apps.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.faults import FAULT_KINDS
 
@@ -181,7 +181,7 @@ def _last_fault_before(doc: dict[str, Any], t: float) -> float | None:
 
 def _in_process(spec: dict[str, Any], folder: Path) -> dict[str, Any]:
     """Run without a kill: measure the true speed every tick, and 1 s past the end with no new command."""
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
     from palletpilot.sim.scenario import Scenario
 
     sc = Scenario.model_validate(spec["scenario"])

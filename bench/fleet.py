@@ -64,9 +64,9 @@ from typing import IO, Any
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, out_folder, seed
-from palletpilot.executor.report import ms_stats
-from palletpilot.executor.vda5050.broker import KINDS, Broker
+from palletpilot.executor.adapters.stores.report import ms_stats
+from palletpilot.executor.apps.cli_args import count, out_folder, seed
+from palletpilot.executor.apps.vda5050.broker import KINDS, Broker
 from palletpilot.geometry import PalletpilotError
 
 STATE_LATENCY_GOAL_MS = 50.0
@@ -212,7 +212,7 @@ class _Master:
 
     def send_order(self, agv: _Agv, order_id: str, path: list[str]) -> None:
         """Publish a move order along `path` to `agv` and record it."""
-        from palletpilot.executor.vda5050.validation import Stamper
+        from palletpilot.executor.apps.vda5050.validation import Stamper
 
         nodes, edges = [], []
         for i, node in enumerate(path):

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, seed
+from palletpilot.executor.apps.cli_args import count, seed
 from palletpilot.geometry.fileio import bundled_path
 
 CELLS_PER_AISLE = 40

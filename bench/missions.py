@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from palletpilot.executor.cli_args import count, names, seed
+from palletpilot.executor.apps.cli_args import count, names, seed
 from palletpilot.geometry.fileio import bundled_path
 
 if TYPE_CHECKING:
@@ -121,7 +121,7 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
 
 def _one(job: tuple[dict, str]) -> dict:
     """Run one scenario in one mode; returns the outcome (in a worker process)."""
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
     from palletpilot.sim.scenario import Scenario
 
     spec, mode = job

@@ -36,7 +36,7 @@ from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import Follower, SegmentTrack
 from palletpilot.control.mpc import SOLVERS
 from palletpilot.control.vehicle import VehicleParams
-from palletpilot.executor.cli_args import count, names, number, seed
+from palletpilot.executor.apps.cli_args import count, names, number, seed
 from palletpilot.geometry import SE2, wrap_angle
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.roadmap import Edge, Line, Node, NodeType, Planner, ReferencePath, connect, load_map, reference_path

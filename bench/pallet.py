@@ -41,8 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from palletpilot.executor.behaviour import Settings
-from palletpilot.executor.cli_args import count, names, number, seed
+from palletpilot.executor.apps.cli_args import count, names, number, seed
+from palletpilot.executor.core.behaviour import Settings
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, seed
+from palletpilot.executor.apps.cli_args import count, seed
 
 OVERHEAD_GOAL_MS = 5.0
 
@@ -50,8 +50,8 @@ def _stats(values: list[float]) -> dict[str, float]:
 def run(args: argparse.Namespace) -> dict:
     """Time the service against the same estimation in this process; the figures as a dict."""
     from palletpilot.bench.pallet import frame_specs, render
-    from palletpilot.executor.perception_remote import LocalService, RemotePerception
-    from palletpilot.executor.processes import keep_heap_mapped
+    from palletpilot.executor.adapters.processes import keep_heap_mapped
+    from palletpilot.executor.adapters.zenoh.perception_remote import LocalService, RemotePerception
     from palletpilot.geometry import SE2, SE3
     from palletpilot.geometry.fileio import bundled_path
     from palletpilot.perception import wire

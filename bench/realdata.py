@@ -59,7 +59,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from palletpilot.executor.cli_args import count
+from palletpilot.executor.apps.cli_args import count
 from palletpilot.geometry import PalletpilotError
 from palletpilot.geometry.errors import raise_problems
 from palletpilot.geometry.fileio import check_size, parse_json, read_text

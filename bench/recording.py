@@ -19,7 +19,7 @@ from typing import Any
 
 from mcap.reader import make_reader
 
-from palletpilot.executor.cli_args import seed
+from palletpilot.executor.apps.cli_args import seed
 from palletpilot.geometry.fileio import bundled_path
 
 MISSIONS = bundled_path("missions")
@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run the mission with the recorder; the figures of the module docstring."""
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
 
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.keep) if args.keep else Path(tmp)

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, seed
+from palletpilot.executor.apps.cli_args import count, seed
 from palletpilot.geometry import SE2
 from palletpilot.roadmap import Arc, Edge, Line, Node, NodeType, Planner, Roadmap
 

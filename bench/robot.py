@@ -36,7 +36,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from palletpilot.executor.cli_args import number, seed
+from palletpilot.executor.apps.cli_args import number, seed
 
 JITTER_GOAL_MS = 5.0
 LATENCY_GOAL_MS = 10.0
@@ -117,8 +117,8 @@ def _stand_in_stats(proc: subprocess.Popen[str], log: Path) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> dict:
     """Run the mission on the stand-in truck and in the simulator; the figures as a dict."""
-    from palletpilot.executor.app import run_simulated
-    from palletpilot.executor.ros.dds import loopback_env
+    from palletpilot.executor.adapters.ros.dds import loopback_env
+    from palletpilot.executor.apps.app import run_simulated
     from palletpilot.geometry.fileio import bundled_path
 
     with tempfile.TemporaryDirectory(prefix="palletpilot-bench-robot-") as tmp:

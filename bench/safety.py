@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from palletpilot.bench.missions import start_node
-from palletpilot.executor.cli_args import count, names, seed
+from palletpilot.executor.apps.cli_args import count, names, seed
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.specs import PalletType, pallet_pose_at_node
@@ -287,7 +287,7 @@ def _placed_at(sim: Any, pallet_id: str, goal: str) -> bool:
 
 def _one(spec: dict[str, Any]) -> dict[str, Any]:
     """Run one situation (in a worker process) and judge it."""
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
     from palletpilot.sim.scenario import Scenario
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -303,7 +303,7 @@ def _one(spec: dict[str, Any]) -> dict[str, Any]:
         wall = time.perf_counter() - t0
         highest, over = _travel_heights(folder / "report", run.sim.vehicle)
     sim = run.sim
-    outcomes = [r.result if r.result == "succeeded" else (r.reason or r.result) for r in run.runner.results]
+    outcomes: list[str] = [r.result if r.result == "succeeded" else (r.reason or r.result) for r in run.runner.results]
     outcomes += ["not_run"] * (len(spec["tasks"]) - len(outcomes))
     wrong = [
         p.id

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from palletpilot.executor.cli_args import count, number, seed
+from palletpilot.executor.apps.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import load_scenario
 from palletpilot.sim.simulator import CONTROL_DT, Simulator

@@ -1,17 +1,25 @@
-"""The mission executor: missions, task state machines, the fail-safe runner, reports and the CLI.
+"""The mission executor, in four layers; each imports only the layers below it (import-linter, pyproject):
 
-Modules (public API in each module's docstring):
+```
+apps       composition roots and commands: app (simulated run), robot (ROS 2 truck), vda5050 (the AGV
+           under a fleet manager), standin (`sim serve --ros`), suite* (`palletpilot test`), cli*
+adapters   implementations and stores: local_perception, zenoh (perception service client and server),
+           ros (the truck over ROS 2), mcap (recording, replay), stores (journal, report, trajectory CSV),
+           processes
+core       the executor itself: mission, tasks (task specs), behaviour / driving / pickup / entry /
+           calibration_trust (the states' behaviours), runner, watchdog, jobs, clock, controls, resume
+           (checkpoints), errors, results, progress
+ports      VehiclePort, PerceptionService, Clock, PassThroughVehicle, and the typed vocabulary (Reason,
+           Outcome and the reason table, `ports.vocabulary`)
+```
 
-- `mission`: mission files (`load_mission`, `validate_mission`); `tasks`: the task state machines as
-  data (`TASK_SPECS`, `build_machine`) and their behaviours (`behaviour`, `driving`, `pickup`,
-  `entry`: the entry and drop-slot checks).
-- `ports`: the interfaces the runner drives (`VehiclePort`, `PerceptionService`), apart from their
-  implementations (the simulator in `sim`, `LocalPerception` here, a robot adapter later).
-- `runner`: `Runner`, the per-tick loop: behaviours, watchdogs, pause / cancel, fail-safe stops,
-  checkpoints; `clock` (`SimClock`, `WallClock`), `jobs` (perception off the loop), `watchdog`,
-  `controls` (signals), `errors` (`TaskFailed` and the reason codes), `results` (`TaskResult`).
-- `journal` (SQLite) and `resume` (`Checkpointer`, `ResumePoint`): crash-safe progress and resuming.
-- `app`: `run_simulated`, `resume_simulated` (the simulator wired to the runner); `report`: report.json,
-  trajectory.png; `progress`: the progress line.
-- `cli`: the `palletpilot` commands (the console script is `palletpilot.cli:main`, which adds `bench`).
+Rules the linter enforces: apps > adapters > core > ports; the adapters `ros`, `zenoh` and `mcap` do not
+import one another, nor do the apps `vda5050`, `robot` and `suite_run`; core never reaches the simulator,
+the benchmarks or an I/O library (SQLite, Zenoh, MCAP, Foxglove, DDS, MQTT, matplotlib) and imports no
+heavy library itself; `import palletpilot.executor.ports` loads no implementation and no heavy library.
+
+Public API: each module's docstring. The ones used most: `ports` (`VehiclePort`, `PerceptionService`,
+`Clock`, `Reason`, `Outcome`), `core.mission` (`load_mission`), `core.runner` (`Runner`), `apps.app`
+(`run_simulated`, `resume_simulated`), `apps.robot` (`run_robot`), `apps.cli` (the `palletpilot`
+commands; the console script is `palletpilot.cli:main`, which adds `bench`).
 """

@@ -352,6 +352,11 @@ class Simulator(PalletPhysics):
         self._renderer = None
         self._beam_scene = None
 
+    def static_changed(self) -> None:
+        """Say that the set of resting pallets changed from outside the simulation (a restored state): the
+        camera's and the beams' scenes are rebuilt on their next use."""
+        self._static_changed()
+
     def _static_meshes(self) -> LabeledMesh:
         return LabeledMesh.merge([self._fixed_mesh] + [self._pallet_mesh(p) for p in self.pallets if not p.carried])
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from palletpilot.executor.vda5050 import broker as broker_module
-from palletpilot.executor.vda5050.broker import Broker, BrokerUnavailableError, available_kind
+from palletpilot.executor.apps.vda5050 import broker as broker_module
+from palletpilot.executor.apps.vda5050.broker import Broker, BrokerUnavailableError, available_kind
 
 needs_broker = pytest.mark.skipif(available_kind() is None, reason="needs mosquitto or amqtt (an MQTT broker)")
 

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 import yaml
 
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.behaviour import Settings
-from palletpilot.executor.calibration_trust import LAST_GOOD_SOURCE, calibration_for_checks
-from palletpilot.executor.errors import CALIBRATION_FAILED, TaskFailed
-from palletpilot.executor.jobs import Jobs
-from palletpilot.executor.pickup import CalibrateCamera
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.behaviour import Settings
+from palletpilot.executor.core.calibration_trust import LAST_GOOD_SOURCE, calibration_for_checks
+from palletpilot.executor.core.errors import CALIBRATION_FAILED, TaskFailed
+from palletpilot.executor.core.jobs import Jobs
+from palletpilot.executor.core.pickup import CalibrateCamera
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception import wire

@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("pyrealsense2")
 
-from palletpilot.executor.cli_capture import add_parsers
+from palletpilot.executor.apps.cli_capture import add_parsers
 from palletpilot.geometry import PalletpilotError
 from palletpilot.perception import realsense
 from palletpilot.perception.frames import load_bundle
@@ -73,7 +73,7 @@ def test_capture_errors_are_one_line(recording, tmp_path, capsys, monkeypatch):
 
 
 def test_main_cli_registers_capture_once_wired():
-    from palletpilot.executor import cli
+    from palletpilot.executor.apps import cli
 
     parser = cli.build_parser()
     try:

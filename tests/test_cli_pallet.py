@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from palletpilot.bench.pallet import FrameSpec, render
-from palletpilot.executor.cli_pallet import add_parsers
+from palletpilot.executor.apps.cli_pallet import add_parsers
 from palletpilot.geometry import SE3
 from palletpilot.perception.calibration_io import Calibration, save_calibration
 from palletpilot.perception.errors import PerceptionError

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from palletpilot.cli import main
-from palletpilot.executor.ports import LocalPerception
+from palletpilot.executor.adapters.local_perception import LocalPerception
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration import calibrate

@@ -311,7 +311,7 @@ def test_realsense_models_perception_cannot_express_are_refused() -> None:
 
 
 def test_ros_camera_info_distortion_models() -> None:
-    from palletpilot.executor.ros.camera import _distortion
+    from palletpilot.executor.adapters.ros.camera import _distortion
 
     assert _distortion("plumb_bob", [0.0] * 5, "info") is None  # all zero: an ideal pinhole
     d = _distortion("plumb_bob", [-0.05, 0.06, 0.0, 0.0, -0.02], "info")

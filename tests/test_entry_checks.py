@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import yaml
 
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.behaviour import Settings
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.behaviour import Settings
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration

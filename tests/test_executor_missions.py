@@ -9,8 +9,8 @@ import yaml
 
 from palletpilot.cli import main
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.mission import MissionError
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.mission import MissionError
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import Scenario
 from palletpilot.testing import assert_checks, assert_failed, assert_succeeded
@@ -182,7 +182,7 @@ def test_no_adapt_baseline_refuses_a_misplaced_pallet(tmp_path):
 
 
 def test_the_load_is_followed_through_the_mission(tmp_path):
-    from palletpilot.executor.mission import load_mission, validate_mission
+    from palletpilot.executor.core.mission import load_mission, validate_mission
     from palletpilot.roadmap import load_map
 
     path = mission_file(
@@ -237,8 +237,8 @@ def test_invalid_missions_are_rejected(tmp_path, capsys, task, message):
 
 
 def test_cancel_stops_the_vehicle(tmp_path):
-    from palletpilot.executor.app import default_scenario
-    from palletpilot.executor.mission import load_mission
+    from palletpilot.executor.apps.app import default_scenario
+    from palletpilot.executor.core.mission import load_mission
 
     path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
     sc = default_scenario(load_mission(path))
@@ -261,8 +261,8 @@ def test_cancel_stops_the_vehicle(tmp_path):
 
 
 def test_pause_holds_the_vehicle_still(tmp_path):
-    from palletpilot.executor.app import default_scenario
-    from palletpilot.executor.mission import load_mission
+    from palletpilot.executor.apps.app import default_scenario
+    from palletpilot.executor.core.mission import load_mission
 
     path = mission_file(tmp_path, [{"type": "move", "node": "a_top"}])
     sc = default_scenario(load_mission(path))
@@ -357,7 +357,7 @@ def test_driving_and_lifting_drain_the_battery(tmp_path):
 
 
 def test_until_level_needs_a_battery_model(tmp_path):
-    from palletpilot.executor.mission import load_mission, validate_mission
+    from palletpilot.executor.core.mission import load_mission, validate_mission
     from palletpilot.roadmap import load_map
 
     path = mission_file(tmp_path, [{"type": "charge", "node": "charger", "until_level": 0.9}])

@@ -12,8 +12,8 @@ import yaml
 from palletpilot.bench import pallet as bench_pallet
 from palletpilot.bench.pallet import FrameSpec, standpoint
 from palletpilot.bench.pallet_families import _wrong, family_spec
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.behaviour import Settings
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.behaviour import Settings
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception import pallet_estimate
@@ -131,7 +131,7 @@ def test_the_type_is_in_doubt_when_as_many_frames_refuse_it_as_find_it():
 def _pickup_with_refusals(tmp_path: Path, monkeypatch, refuse_every: int):
     """A pickup of a EUR pallet whose frames are refused for the type (`pockets_inconsistent`) on every
     `refuse_every`-th call of the estimator, from the first on."""
-    from palletpilot.executor.ports import LocalPerception
+    from palletpilot.executor.adapters.local_perception import LocalPerception
     from palletpilot.perception.pallet import PalletNotFound
 
     calls = {"n": 0}

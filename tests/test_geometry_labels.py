@@ -162,7 +162,7 @@ def _scenario() -> Scenario:
 
 
 def test_a_pickup_succeeds_with_the_model_replaced_by_noise(tmp_path, run_mission, monkeypatch):
-    monkeypatch.setattr("palletpilot.executor.app.OnnxSegmenter", NoiseSegmenter)
+    monkeypatch.setattr("palletpilot.executor.apps.app.OnnxSegmenter", NoiseSegmenter)
     r = run_mission(_mission(tmp_path), _scenario(), labels="fused")
     assert_succeeded(r)
     assert_checks(r)

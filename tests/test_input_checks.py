@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from palletpilot.cli import main
-from palletpilot.executor import cli_args
+from palletpilot.executor.apps import cli_args
 from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.fileio import (
     bundled_path,

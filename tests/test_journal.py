@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from palletpilot.executor.journal import SCHEMA_VERSION, Journal, JournalError
+from palletpilot.executor.adapters.stores.journal import SCHEMA_VERSION, Journal, JournalError
 
 META = {"mission": "/missions/pickup.yaml", "mission_sha256": "ab" * 32, "seed": 7, "report_dir": None}
 
@@ -147,7 +147,7 @@ def test_a_failed_write_is_one_line_and_leaves_the_journal_intact(tmp_path: Path
 
 _CHILD = r"""
 import sys
-from palletpilot.executor.journal import Journal
+from palletpilot.executor.adapters.stores.journal import Journal
 
 journal = Journal.create(sys.argv[1], {"child": True})
 n = 0

@@ -13,9 +13,9 @@ import pytest
 import yaml
 
 from palletpilot.bench.pallet import FrameSpec, render, render_frames
-from palletpilot.executor.cli_pallet_measure import add_parsers
-from palletpilot.executor.entry import CheckVolume, entry_pocket_fit, pocket_fit_problems
-from palletpilot.executor.errors import TaskFailed
+from palletpilot.executor.apps.cli_pallet_measure import add_parsers
+from palletpilot.executor.core.entry import CheckVolume, entry_pocket_fit, pocket_fit_problems
+from palletpilot.executor.core.errors import TaskFailed
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration, save_calibration
@@ -184,8 +184,8 @@ def test_the_entry_check_refuses_before_entering_with_the_figures() -> None:
 def test_a_family_pickup_enters_only_pockets_the_forks_fit(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, columns: tuple, result: str, words: str
 ) -> None:
-    import palletpilot.executor.tasks as tasks
-    from palletpilot.executor.app import run_simulated
+    import palletpilot.executor.core.tasks as tasks
+    from palletpilot.executor.apps.app import run_simulated
     from palletpilot.sim.scenario import load_scenario
 
     # The entry check as `executor.tasks` wires it: the pickup's entry volume checks the pocket fit first.
@@ -295,7 +295,7 @@ def test_pallet_measure_bad_inputs_are_one_line(
 
 
 def test_pallet_measure_through_the_command_line_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from palletpilot.executor.cli import main
+    from palletpilot.executor.apps.cli import main
 
     assert main(["pallet", "measure", str(tmp_path / "none.npz"), "--calibration", "x.json", "--out", "t.yaml"]) == 2
     err = capsys.readouterr().err.strip().splitlines()  # one line per problem, every input checked first

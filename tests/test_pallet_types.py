@@ -254,7 +254,7 @@ def _industrial_scenario() -> Scenario:
 
 
 def test_a_mission_picks_the_pallet_type_it_names(tmp_path: Path) -> None:
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
 
     mission = _mission(tmp_path, [{"type": "pickup", "node": "floor_b2", "pallet_type": "industrial"}])
     r = run_simulated(mission, scenario=_industrial_scenario(), report_dir=tmp_path / "report")
@@ -262,7 +262,7 @@ def test_a_mission_picks_the_pallet_type_it_names(tmp_path: Path) -> None:
 
 
 def test_a_pallet_of_another_type_than_the_mission_names_is_not_lifted(tmp_path: Path) -> None:
-    from palletpilot.executor.app import run_simulated
+    from palletpilot.executor.apps.app import run_simulated
 
     mission = _mission(tmp_path, [{"type": "pickup", "node": "floor_b2"}])  # the mission's default: eur
     r = run_simulated(mission, scenario=_industrial_scenario(), report_dir=tmp_path / "report")
@@ -272,7 +272,7 @@ def test_a_pallet_of_another_type_than_the_mission_names_is_not_lifted(tmp_path:
 
 
 def test_pallet_types_per_task_follow_the_load(tmp_path: Path) -> None:
-    from palletpilot.executor.mission import load_mission
+    from palletpilot.executor.core.mission import load_mission
 
     (tmp_path / "mine.yaml").write_text(yaml.safe_dump({"name": "mine", "width": 1.0, "length": 1.2}))
     tasks = [

@@ -24,9 +24,8 @@ zenoh = pytest.importorskip("zenoh")
 
 from palletpilot.bench.pallet import FrameSpec, render  # noqa: E402
 from palletpilot.cli import main  # noqa: E402
-from palletpilot.executor.app import run_simulated  # noqa: E402
-from palletpilot.executor.errors import TaskFailed  # noqa: E402
-from palletpilot.executor.perception_remote import (  # noqa: E402
+from palletpilot.executor.adapters.local_perception import LocalPerception  # noqa: E402
+from palletpilot.executor.adapters.zenoh.perception_remote import (  # noqa: E402
     UNAVAILABLE,
     CalibrationUnavailableError,
     Deadlines,
@@ -35,8 +34,9 @@ from palletpilot.executor.perception_remote import (  # noqa: E402
     RemotePerception,
     free_port,
 )
-from palletpilot.executor.perception_server import PerceptionServer, zenoh_config  # noqa: E402
-from palletpilot.executor.ports import LocalPerception  # noqa: E402
+from palletpilot.executor.adapters.zenoh.perception_server import PerceptionServer, zenoh_config  # noqa: E402
+from palletpilot.executor.apps.app import run_simulated  # noqa: E402
+from palletpilot.executor.core.errors import TaskFailed  # noqa: E402
 from palletpilot.geometry import SE2, SE3  # noqa: E402
 from palletpilot.geometry.fileio import bundled_path  # noqa: E402
 from palletpilot.perception import wire  # noqa: E402

@@ -8,9 +8,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from palletpilot.executor.behaviour import Settings
-from palletpilot.executor.errors import TaskFailed
-from palletpilot.executor.pickup import _check_envelope, forks_outside_pockets
+from palletpilot.executor.core.behaviour import Settings
+from palletpilot.executor.core.errors import TaskFailed
+from palletpilot.executor.core.pickup import _check_envelope, forks_outside_pockets
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.specs import PalletType, load_forks, pallet_pose_at_node

@@ -12,10 +12,10 @@ from mcap_protobuf.decoder import DecoderFactory
 from test_executor_missions import mission_file, scenario
 
 from palletpilot.cli import main
-from palletpilot.executor import recording_channels, recording_scene
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.processes import free_port
-from palletpilot.executor.recording import RECORDING, SIM_EPOCH_NS, TOPICS
+from palletpilot.executor.adapters.mcap import recording_channels, recording_scene
+from palletpilot.executor.adapters.mcap.recording import RECORDING, SIM_EPOCH_NS, TOPICS
+from palletpilot.executor.adapters.processes import free_port
+from palletpilot.executor.apps.app import run_simulated
 from palletpilot.geometry.fileio import bundled_path
 
 LAYOUT = "foxglove/palletpilot_layout.json"

@@ -14,10 +14,10 @@ from typing import Any
 import pytest
 import yaml
 
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.behaviour import TemporaryNodes
-from palletpilot.executor.journal import Journal
-from palletpilot.executor.pickup import add_temporary_nodes
+from palletpilot.executor.adapters.stores.journal import Journal
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.behaviour import TemporaryNodes
+from palletpilot.executor.core.pickup import add_temporary_nodes
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.roadmap import NodeType, RoadmapError, load_map

@@ -7,7 +7,7 @@ from mcap.writer import Writer
 from test_recording import _run
 
 from palletpilot.cli import main
-from palletpilot.executor.recording import RECORDING
+from palletpilot.executor.adapters.mcap.recording import RECORDING
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from palletpilot.executor.app import run_simulated
+from palletpilot.executor.apps.app import run_simulated
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.pallet import PalletNotFound, estimate_pallet

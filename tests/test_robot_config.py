@@ -13,16 +13,23 @@ import numpy as np
 import pytest
 
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.cli import main
-from palletpilot.executor.errors import SENSOR_TIMEOUT, TaskFailed
+from palletpilot.executor.adapters.ros import messages as m
+from palletpilot.executor.adapters.ros.camera import (
+    RosCamera,
+    camera_info,
+    depth_image,
+    image_to_depth,
+    image_to_rgb,
+    rgb_image,
+)
+from palletpilot.executor.adapters.ros.config import RobotConfig, RobotConfigError, load_robot
+from palletpilot.executor.adapters.ros.transport import MemoryTransport
+from palletpilot.executor.adapters.ros.vehicle import RosVehicle
+from palletpilot.executor.apps.cli import main
+from palletpilot.executor.apps.cli_robot import static_tf_text
+from palletpilot.executor.apps.robot import RobotError, calibration_problem, load_inputs, start_node
+from palletpilot.executor.core.errors import SENSOR_TIMEOUT, TaskFailed
 from palletpilot.executor.ports import VehiclePort
-from palletpilot.executor.ros import messages as m
-from palletpilot.executor.ros.camera import RosCamera, camera_info, depth_image, image_to_depth, image_to_rgb, rgb_image
-from palletpilot.executor.ros.cli_robot import static_tf_text
-from palletpilot.executor.ros.config import RobotConfig, RobotConfigError, load_robot
-from palletpilot.executor.ros.robot import RobotError, calibration_problem, load_inputs, start_node
-from palletpilot.executor.ros.transport import MemoryTransport
-from palletpilot.executor.ros.vehicle import RosVehicle
 from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration, save_calibration
@@ -336,7 +343,7 @@ def test_static_tf_text() -> None:
 
 
 def test_calibrate_takes_ros_static_tf() -> None:
-    from palletpilot.executor.cli import build_parser
+    from palletpilot.executor.apps.cli import build_parser
 
     parser = build_parser()
     args = parser.parse_args(["calibrate", "f.npz", "--forks", "forks.yaml", "--ros-static-tf"])
@@ -346,7 +353,7 @@ def test_calibrate_takes_ros_static_tf() -> None:
 
 
 def test_realsense_camera_grabs_off_the_loop() -> None:
-    from palletpilot.executor.ros.camera import RealSenseCamera
+    from palletpilot.executor.adapters.ros.camera import RealSenseCamera
     from palletpilot.perception.frames import FrameBundle
 
     class FakeSource:

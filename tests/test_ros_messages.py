@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from palletpilot.executor.ros import messages as m
-from palletpilot.executor.ros.transport import (
+from palletpilot.executor.adapters.ros import messages as m
+from palletpilot.executor.adapters.ros.transport import (
     QosSpec,
     TransportError,
     check_topic_name,
@@ -228,7 +228,7 @@ def test_rclpy_import_guard() -> None:
     """Without a ROS 2 installation `auto` falls back to Cyclone DDS and `rclpy` says what is missing."""
     if rclpy_available():
         pytest.skip("rclpy is installed here")
-    from palletpilot.executor.ros.rclpy_transport import RclpyTransport
+    from palletpilot.executor.adapters.ros.rclpy_transport import RclpyTransport
 
     with pytest.raises(TransportError, match="rclpy"):
         RclpyTransport()
@@ -237,7 +237,7 @@ def test_rclpy_import_guard() -> None:
 @pytest.fixture()
 def loopback_dds(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> int:
     """Cyclone DDS on the loopback interface only, in a domain of its own."""
-    from palletpilot.executor.ros.dds import loopback_env
+    from palletpilot.executor.adapters.ros.dds import loopback_env
 
     env = loopback_env(tmp_path)
     for key, value in env.items():
@@ -247,7 +247,7 @@ def loopback_dds(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> int:
 
 def test_dds_round_trip(loopback_dds: int) -> None:
     """Publish on one participant, receive on another: every message, in order, with its receive time."""
-    from palletpilot.executor.ros.dds import DdsTransport
+    from palletpilot.executor.adapters.ros.dds import DdsTransport
 
     with DdsTransport() as a, DdsTransport() as b:
         assert a.domain_id == loopback_dds

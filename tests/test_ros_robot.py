@@ -27,8 +27,8 @@ pytest.importorskip("cyclonedds")
 
 from palletpilot.bench.robot import start_stand_in
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.ros import messages as m
-from palletpilot.executor.ros.dds import DdsTransport, loopback_env
+from palletpilot.executor.adapters.ros import messages as m
+from palletpilot.executor.adapters.ros.dds import DdsTransport, loopback_env
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration, save_calibration
 from palletpilot.sim.scenario import load_scenario
@@ -122,7 +122,7 @@ def test_pickup_and_delivery_over_ros2(tmp_path: Path, dds_env: dict[str, str]) 
         assert doc["drive_commands_sent"] >= doc["clock"]["ticks"]  # one per tick at least: the truck never timed out
         assert journal.is_file()
         # the run's recording, from the truck's own readings: replay gives the same tasks and the same clock
-        from palletpilot.executor.replay import replay
+        from palletpilot.executor.adapters.mcap.replay import replay
 
         replayed = json.loads(replay(report / "run.mcap", tmp_path / "replayed").read_text())
         assert [t["result"] for t in replayed["tasks"]] == ["succeeded", "succeeded"]

@@ -25,9 +25,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from palletpilot.executor.recording_channels import TOPICS
-from palletpilot.executor.ros.config import load_robot
-from palletpilot.executor.ros.standin_camera import CameraProcess, CameraState, apply_camera_state, camera_state
+from palletpilot.executor.adapters.mcap.recording_channels import TOPICS
+from palletpilot.executor.adapters.ros.config import load_robot
+from palletpilot.executor.apps.standin.camera import (
+    CameraProcess,
+    CameraState,
+    apply_camera_state,
+    camera_state,
+)
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.frames import FrameBundle
@@ -101,8 +106,8 @@ def test_child_dies_with_its_parent_even_on_sigkill() -> None:
     parent_code = textwrap.dedent(
         f"""
         import time
-        from palletpilot.executor.ros.config import load_robot
-        from palletpilot.executor.ros.standin_camera import CameraProcess
+        from palletpilot.executor.adapters.ros.config import load_robot
+        from palletpilot.executor.apps.standin.camera import CameraProcess
         from palletpilot.sim.scenario import Scenario
         from palletpilot.geometry.fileio import bundled_path
         sc = Scenario.model_validate({{"map": "warehouse.yaml", "start": "b1"}})
@@ -148,7 +153,7 @@ def test_sim_serve_foxglove_streams_the_truth(tmp_path: Path) -> None:
     pytest.importorskip("cyclonedds")
     from websockets.sync.client import connect
 
-    from palletpilot.executor.ros.dds import loopback_env
+    from palletpilot.executor.adapters.ros.dds import loopback_env
 
     scenario = tmp_path / "scenario.yaml"
     missions = bundled_path("missions")
@@ -197,7 +202,7 @@ def test_sim_serve_foxglove_streams_the_truth(tmp_path: Path) -> None:
 
 def test_sim_serve_foxglove_port_in_use_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("cyclonedds")
-    from palletpilot.executor.cli import main
+    from palletpilot.executor.apps.cli import main
 
     scenario = tmp_path / "scenario.yaml"
     missions = bundled_path("missions")

@@ -16,12 +16,12 @@ import yaml
 from palletpilot.control.follower import DriveCommand, FollowerStatus
 from palletpilot.control.safety import SafetyState
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.clock import SimClock, WallClock
-from palletpilot.executor.controls import Controls
-from palletpilot.executor.mission import load_mission
-from palletpilot.executor.runner import Runner
-from palletpilot.executor.watchdog import WatchdogLimits
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.clock import SimClock, WallClock
+from palletpilot.executor.core.controls import Controls
+from palletpilot.executor.core.mission import load_mission
+from palletpilot.executor.core.runner import Runner
+from palletpilot.executor.core.watchdog import WatchdogLimits
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.roadmap import load_map

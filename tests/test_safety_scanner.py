@@ -9,8 +9,8 @@ import yaml
 
 from palletpilot.control.safety import safety_fields, stopping_distance
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.app import run_simulated
-from palletpilot.executor.behaviour import Settings
+from palletpilot.executor.apps.app import run_simulated
+from palletpilot.executor.core.behaviour import Settings
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.scenario import Scenario

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from palletpilot.executor.app import run_simulated
+from palletpilot.executor.apps.app import run_simulated
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.sim.forklift import ForkliftState
 from palletpilot.sim.scenario import Scenario, SimError

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from palletpilot.cli import main
-from palletpilot.executor.suite import SuiteError, load_suite
+from palletpilot.executor.apps.suite import SuiteError, load_suite
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.testing import assert_checks, assert_failed, assert_succeeded, checks_of
 

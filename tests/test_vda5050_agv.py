@@ -36,9 +36,9 @@ from test_vda5050_mqtt import (
 )
 
 from palletpilot.cli import main
-from palletpilot.executor.recording import RECORDING
-from palletpilot.executor.replay import read_recording
-from palletpilot.executor.vda5050 import validation
+from palletpilot.executor.adapters.mcap.recording import RECORDING
+from palletpilot.executor.adapters.mcap.replay import read_recording
+from palletpilot.executor.apps.vda5050 import validation
 
 AGV = [sys.executable, "-m", "palletpilot.cli", "agv"]
 PATH = ["a2", "a3", "floor_a3_pre", "floor_a3", "floor_a3_pre", "a3", "a_bot", "c_w", "j_charge", "j_drop"]
@@ -176,10 +176,10 @@ def test_an_agv_session_is_recorded_to_one_run_mcap(tmp_path: Path, capsys: pyte
     the leg as events; `palletpilot replay` gives the session's report (the leg's Move task)."""
     from test_recording import read_mcap
 
-    from palletpilot.executor.recording import Recorder
-    from palletpilot.executor.vda5050.agv import Agv
-    from palletpilot.executor.vda5050.config import load_config
-    from palletpilot.executor.vda5050.vehicle import sim_backend
+    from palletpilot.executor.adapters.mcap.recording import Recorder
+    from palletpilot.executor.apps.vda5050.agv import Agv
+    from palletpilot.executor.apps.vda5050.config import load_config
+    from palletpilot.executor.apps.vda5050.vehicle import sim_backend
 
     loaded = load_config(write_config(tmp_path, 1883))  # never connected
     scenario = tmp_path / "scenario.yaml"

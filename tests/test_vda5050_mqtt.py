@@ -1,6 +1,6 @@
 """VDA 5050 over a real MQTT broker: a mosquitto (else amqtt) started on a free loopback port, the AGV in this
 process on the simulated warehouse (wall clock), and a small master (paho) that checks every message it receives
-against the official schemas. `Broker` (from `palletpilot.executor.vda5050.broker`, re-exported here) and
+against the official schemas. `Broker` (from `palletpilot.executor.apps.vda5050.broker`, re-exported here) and
 `Master` are reused by the end-to-end tests."""
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import paho.mqtt.client as mqtt
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from palletpilot.executor.vda5050 import validation
-from palletpilot.executor.vda5050.broker import Broker, available_kind
+from palletpilot.executor.apps.vda5050 import validation
+from palletpilot.executor.apps.vda5050.broker import Broker, available_kind
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSIONS = ROOT / "missions"
@@ -185,9 +185,9 @@ def broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Broker]:
 
 @pytest.fixture(scope="module")
 def agv(broker: Broker, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
-    from palletpilot.executor.vda5050.agv import Agv
-    from palletpilot.executor.vda5050.config import load_config
-    from palletpilot.executor.vda5050.vehicle import sim_backend
+    from palletpilot.executor.apps.vda5050.agv import Agv
+    from palletpilot.executor.apps.vda5050.config import load_config
+    from palletpilot.executor.apps.vda5050.vehicle import sim_backend
 
     folder = tmp_path_factory.mktemp("agv")
     loaded = load_config(write_config(folder, broker.port, visualization_hz=5.0, state_interval_s=5.0))

@@ -13,10 +13,10 @@ from typing import Any
 import pytest
 
 from palletpilot.control.vehicle import load_vehicle
-from palletpilot.executor.vda5050 import validation
-from palletpilot.executor.vda5050.actions import ActionTable, IllegalTransitionError
-from palletpilot.executor.vda5050.config import AgvConfigError, load_config
-from palletpilot.executor.vda5050.models import (
+from palletpilot.executor.apps.vda5050 import validation
+from palletpilot.executor.apps.vda5050.actions import ActionTable, IllegalTransitionError
+from palletpilot.executor.apps.vda5050.config import AgvConfigError, load_config
+from palletpilot.executor.apps.vda5050.models import (
     Action,
     ActionStatus,
     AgvError,
@@ -24,8 +24,8 @@ from palletpilot.executor.vda5050.models import (
     ConnectionState,
     ErrorLevel,
 )
-from palletpilot.executor.vda5050.orders import OrderManager, VehicleView
-from palletpilot.executor.vda5050.state import Messages, Snapshot
+from palletpilot.executor.apps.vda5050.orders import OrderManager, VehicleView
+from palletpilot.executor.apps.vda5050.state import Messages, Snapshot
 from palletpilot.roadmap import load_map
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -136,9 +136,11 @@ def rejected(decision: Any, error_type: str) -> AgvError:
 @pytest.mark.skipif(not REFERENCE.is_dir(), reason="the shared VDA 5050 reference is not beside the repository")
 def test_vendored_schemas_are_the_published_files() -> None:
     for topic in validation.TOPICS:
-        vendored = MISSIONS.parent / "executor" / "vda5050" / "schemas" / f"{topic}.schema"
+        vendored = MISSIONS.parent / "executor" / "apps" / "vda5050" / "schemas" / f"{topic}.schema"
         assert vendored.read_bytes() == (REFERENCE / f"{topic}.schema").read_bytes(), topic
-    assert "Verband der Automobilindustrie" in (MISSIONS.parent / "executor/vda5050/schemas/LICENSE.txt").read_text()
+    assert (
+        "Verband der Automobilindustrie" in (MISSIONS.parent / "executor/apps/vda5050/schemas/LICENSE.txt").read_text()
+    )
 
 
 def test_errata_are_applied() -> None:

@@ -24,11 +24,11 @@ import pytest
 from test_vda5050_mqtt import MISSIONS, Broker, Master, action, make_order, needs_broker, status, write_config
 
 from palletpilot.cli import main
-from palletpilot.executor.journal import Journal, JournalError
-from palletpilot.executor.vda5050 import validation
-from palletpilot.executor.vda5050.config import load_config
-from palletpilot.executor.vda5050.orders import OrderManager, VehicleView
-from palletpilot.executor.vda5050.persist import (
+from palletpilot.executor.adapters.stores.journal import Journal, JournalError
+from palletpilot.executor.apps.vda5050 import validation
+from palletpilot.executor.apps.vda5050.config import load_config
+from palletpilot.executor.apps.vda5050.orders import OrderManager, VehicleView
+from palletpilot.executor.apps.vda5050.persist import (
     HEADER_BLOCK,
     JOURNAL_NAME,
     Persister,
@@ -118,9 +118,9 @@ def test_sessions_new_resumed_finished_and_foreign(tmp_path: Path, capsys: pytes
 
 def test_restore_fails_the_running_action_and_halts_the_truck(tmp_path: Path) -> None:
     """A pick INITIALIZING on its way at b2 when the process died; the simulator restarts at b1."""
-    from palletpilot.executor.vda5050.agv import Agv
-    from palletpilot.executor.vda5050.restart import LAST_NODE_MISMATCH, LOAD_MISMATCH, ORDER_INTERRUPTED
-    from palletpilot.executor.vda5050.vehicle import sim_backend
+    from palletpilot.executor.apps.vda5050.agv import Agv
+    from palletpilot.executor.apps.vda5050.restart import LAST_NODE_MISMATCH, LOAD_MISMATCH, ORDER_INTERRUPTED
+    from palletpilot.executor.apps.vda5050.vehicle import sim_backend
 
     loaded = load_config(write_config(tmp_path, 1883))
     backend = sim_backend(loaded, SCENARIO, labels="truth")

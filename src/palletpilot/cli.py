@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 
-from palletpilot.executor.controls import install_signal_handlers
+from palletpilot.executor.core.controls import install_signal_handlers
 
 # Commands that drive a vehicle: a signal cancels them cleanly instead of killing the process.
 _VEHICLE_COMMANDS = ("run",)
@@ -26,7 +26,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 from collections.abc import Sequence  # noqa: E402
 
 from palletpilot.bench.cli import add_parsers as add_bench_parsers  # noqa: E402
-from palletpilot.executor import cli as executor_cli  # noqa: E402
+from palletpilot.executor.apps import cli as executor_cli  # noqa: E402
 
 
 def main(argv: Sequence[str] | None = None) -> int:

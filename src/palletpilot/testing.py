@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 if TYPE_CHECKING:  # the simulator is imported when a test runs a mission, not when pytest loads plugins
-    from palletpilot.executor.app import SimRun
+    from palletpilot.executor.apps.app import SimRun
     from palletpilot.sim.scenario import Scenario
 
 RunMission = Callable[..., "SimRun"]
@@ -55,7 +55,7 @@ def run_mission(tmp_path: Path) -> RunMission:
         folder: str | Path | None = None,
         **options: Any,
     ) -> SimRun:
-        from palletpilot.executor.app import run_simulated
+        from palletpilot.executor.apps.app import run_simulated
         from palletpilot.sim.scenario import Scenario
 
         report = tmp_path / f"run{next(calls)}"
@@ -90,8 +90,8 @@ def assert_failed(result: SimRun, *reasons: str) -> None:
 def checks_of(result: SimRun, **checks: Any) -> list[str]:
     """The `palletpilot test` checks (`Checks`; defaults: no contact, travel height, only the target
     moved) on a finished run: one line per violation."""
-    from palletpilot.executor.suite import Checks
-    from palletpilot.executor.suite_run import check_run
+    from palletpilot.executor.apps.suite import Checks
+    from palletpilot.executor.apps.suite_run import check_run
 
     assert result.report is not None, "the run wrote no report (run it through the run_mission fixture)"
     folder = Path(result.report).parent

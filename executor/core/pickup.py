@@ -1,0 +1,610 @@
+"""The adaptive Pickup's own behaviours: calibrate, estimate the pallet, re-plan, safety check.
+
+Perception runs off the control loop (`ctx.jobs`): a state grabs its frame(s) while the truck stands,
+submits the work and polls for the result each tick, so its timeout fires and the vehicle keeps being
+commanded while perception runs. A result computed from a frame older than the vehicle's last motion
+(`ctx.last_motion_s`) is never used: the frame is grabbed again.
+
+Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`,
+`approach_curve`, `approach_route`, `nodes_back`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from typing import Any
+
+from palletpilot.executor.core.behaviour import Behaviour, Context, TemporaryNodes
+from palletpilot.executor.core.calibration_trust import LAST_GOOD_SOURCE, note_trusted, trusted_axes_only
+from palletpilot.executor.core.entry import MIN_SEEN, RECHECK_S, entry_volume_at
+from palletpilot.executor.core.errors import (
+    CALIBRATION_FAILED,
+    NO_FEASIBLE_APPROACH,
+    PALLET_NOT_FOUND,
+    PATH_BLOCKED,
+    SAFETY_CHECK_FAILED,
+    STILL_MISALIGNED,
+    TaskFailed,
+)
+from palletpilot.executor.core.jobs import Job
+from palletpilot.geometry import SE2, SE3, angle_diff
+from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
+from palletpilot.perception.calibration import CalibrationError
+from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.errors import PerceptionError
+from palletpilot.perception.frames import FrameBundle
+from palletpilot.perception.pallet import TYPE_REFUSALS, FramePolicy, PalletEstimate
+from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pallet_pose_at_node
+from palletpilot.perception.view import pickup_view
+from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
+from palletpilot.roadmap.graph import TANGENT_TOLERANCE_RAD
+
+STANDING_SPEED = 1e-3
+"""m/s: below this the vehicle stands (frames for perception are taken only then)."""
+
+
+def _stale(ctx: Context, frame_s: float) -> bool:
+    """True when the vehicle or its forks moved after the frame was taken."""
+    return ctx.last_motion_s > frame_s
+
+
+def _frame_time(ctx: Context, frame: FrameBundle) -> float:
+    stamp = frame.stamp_s
+    return ctx.clock_now() if stamp is None else stamp
+
+
+class CalibrateCamera(Behaviour):
+    """Calibrate the camera from the forks and the floor; retry once, then fail (the last good stays).
+
+    An untrusted axis is never used for the entry (`executor.calibration_trust.trusted_axes_only`): a
+    calibration whose fork tips cannot be trusted keeps x from the truck's last trusted calibration when
+    the mount has not moved (event `calibration_axis_kept`). Without a trusted calibration to keep it from,
+    it first takes another look (`Settings.calibration_retries` fresh frames, event `calibration_untrusted`):
+    a few noisy pixels past the tips trip the check now and then (one simulated pickup in 20), a tapered
+    blade every time. Then the task fails with `calibration_failed` (event `calibration_refused`).
+    """
+
+    timeout_s = 20.0
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        self.job: Job[Calibration] | None = None
+        self.frame: FrameBundle | None = None
+        self.frame_s = 0.0
+        self.errors: list[str] = []
+        self.untrusted = 0  # calibrations with an untrusted axis and nothing to keep it from
+
+    def update(self, ctx: Context) -> str | None:
+        perception = ctx.perception
+        assert perception is not None
+        if self.job is None:
+            if abs(ctx.vehicle.speed) > STANDING_SPEED:
+                ctx.vehicle.stop()
+                return None
+            frame = ctx.frame()
+            if frame is None:
+                return None
+            self.frame, self.frame_s = frame, _frame_time(ctx, frame)
+            note_trusted(ctx, perception.last_good, LAST_GOOD_SOURCE)  # before the new one replaces it
+            self.job = ctx.jobs.submit(
+                "calibrate",
+                lambda: perception.calibrate([frame]),
+                latency_s=ctx.settings.calibration_latency_s,
+                delay_of=perception,
+            )
+            return None
+        if not self.job.poll(ctx.clock_now()):
+            return None
+        job, self.job = self.job, None
+        if _stale(ctx, self.frame_s):
+            ctx.log("perception_result_discarded", state="calibrate", reason="the vehicle moved after the frame")
+            return None
+        try:
+            calibration = job.result()
+        except (CalibrationError, PerceptionError) as exc:
+            self.errors.append(str(exc))
+            ctx.log("calibration_failed", attempt=len(self.errors), error=str(exc))
+            if len(self.errors) > ctx.settings.calibration_retries:
+                raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {self.errors[-1]}") from None
+            return None
+        if calibration.untrusted_axes and ctx.trusted_calibration is None:
+            self.untrusted += 1
+            if self.untrusted <= ctx.settings.calibration_retries:  # look again: noise, not a taper?
+                axes = sorted(a.value for a in calibration.untrusted_axes)
+                ctx.log("calibration_untrusted", attempt=self.untrusted, axes=axes, warnings=list(calibration.warnings))
+                return None
+        calibration = trusted_axes_only(ctx, calibration)
+        ctx.calibration = calibration
+        ctx.record.setdefault("calibrations", []).append(calibration.to_json())
+        ctx.log("calibrated", xyz_m=calibration.to_json()["xyz_m"], quality=calibration.quality)
+        if calibration.warnings:  # e.g. fork tips that cannot be trusted: the forks file needs the taper
+            ctx.log("calibration_warning", warnings=list(calibration.warnings))
+        self._check_view(ctx, calibration)
+        return "done"
+
+    def _check_view(self, ctx: Context, calibration: Calibration) -> None:
+        """A mount too steep for the Pickup explains a later "no entry face" or a hidden load."""
+        assert self.frame is not None
+        h, w = self.frame.depth.shape
+        view = pickup_view(
+            calibration.T_forklift_camera,
+            self.frame.K,
+            (w, h),
+            ctx.forks,
+            ctx.pallet_type,
+            fork_clearance_m=ctx.settings.fork_clearance,
+        )
+        problems = view.problems()
+        if problems:
+            ctx.log("camera_mount_warning", problems=problems)
+
+    def stop(self, ctx: Context) -> None:
+        if self.job is not None:
+            self.job.cancel()
+
+
+class EstimatePallet(Behaviour):
+    """Estimate the pallet with the raised forks; aligned with the (current) pallet node, or misaligned.
+
+    Takes `frames_per_estimate` frames on consecutive ticks (each with its localization fix) while the
+    truck stands, estimates them off the loop and fuses the estimates; while the fused yaw is still
+    uncertain, another round of frames, up to `max_frames_per_estimate` (`_frame_policy`). When as many
+    frames refused the pallet type as gave an estimate, `pallet_not_found`: a type in doubt is not entered
+    (unless something stands in the entry volume before the pallet, hiding part of its face: then, as
+    when no pallet is seen, hold and look again, `path_blocked` after the wait).
+    """
+
+    timeout_s = 20.0
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        ctx.attempts += 1
+        self.frames: list[tuple[FrameBundle, SE2, float]] = []
+        self.estimates: list[PalletEstimate] = []  # of the frames estimated so far, over the rounds
+        self.errors: list[tuple[str, str]] = []  # (reason, message) of the frames without an estimate
+        self.wanted = max(1, ctx.settings.frames_per_estimate)
+        self.job: Job[tuple[list[PalletEstimate], list[tuple[str, str]]]] | None = None
+        self.blocked_since: float | None = None  # something stood in the entry volume since (task time, s)
+        self.look_at = 0.0  # task time (s) of the next look while blocked
+        self.timeout_s = EstimatePallet.timeout_s + ctx.settings.blocked_wait_s
+
+    def update(self, ctx: Context) -> str | None:
+        perception, calibration = ctx.perception, ctx.calibration
+        assert perception is not None and calibration is not None
+        if self.job is None:
+            if abs(ctx.vehicle.speed) > STANDING_SPEED:
+                ctx.vehicle.stop()
+                self._restart(ctx)
+                return None
+            if ctx.now() < self.look_at:
+                return None
+            frame = ctx.frame()
+            if frame is not None:
+                self.frames.append((frame, ctx.vehicle.localization(), _frame_time(ctx, frame)))
+            if len(self.frames) < self.wanted:
+                return None
+            taken = self.frames[len(self.estimates) + len(self.errors) :]  # each estimated frame gave one of them
+            expected, pallet = _expected_pallet(ctx), ctx.pallet_type
+            support = ctx.roadmap.node(ctx.pallet_node).height  # the floor, or the rack's beams
+
+            def estimate() -> tuple[list[PalletEstimate], list[tuple[str, str]]]:
+                estimates, errors = [], []
+                for f, pose, _ in taken:
+                    try:
+                        estimates.append(
+                            perception.estimate_pallet(f, calibration, pose, expected, pallet, support_height_m=support)
+                        )
+                    except PerceptionError as exc:
+                        errors.append((str(getattr(exc, "reason", "")), str(exc)))
+                return estimates, errors
+
+            self.job = ctx.jobs.submit(
+                "estimate_pallet", estimate, latency_s=len(taken) * ctx.settings.estimate_latency_s, delay_of=perception
+            )
+            return None
+        if not self.job.poll(ctx.clock_now()):
+            return None
+        job, self.job = self.job, None
+        if _stale(ctx, min(t for _, _, t in self.frames)):
+            ctx.log("perception_result_discarded", state="estimate_pallet", reason="the vehicle moved after the frames")
+            self._restart(ctx)
+            return None
+        estimates, errors = job.result()
+        self.estimates += estimates
+        self.errors += errors
+        if not self.estimates:
+            why = self.errors[-1][1] if self.errors else "no pallet estimate"
+            if self._blocked_in_front(ctx):
+                return None  # something stands before the pallet: look again later
+            raise TaskFailed(PALLET_NOT_FOUND, why)
+        verdict = _frame_policy(ctx).after_round(self.estimates, [r for r, _ in self.errors], len(self.frames))
+        if verdict.type_in_doubt:
+            refusals = [m for r, m in self.errors if r in TYPE_REFUSALS]
+            n_frames = len(self.frames)
+            if self._blocked_in_front(ctx):  # (which forgets this round's frames)
+                return None  # something before the pallet hides part of its face: look again later
+            raise TaskFailed(
+                PALLET_NOT_FOUND,
+                f"{len(refusals)} of {n_frames} frames refused the pallet type "
+                f"({ctx.pallet_type.name}), so it is not entered: {refusals[-1]}",
+            )
+        fused = verdict.fused
+        assert fused is not None
+        if verdict.more:
+            self.wanted = len(self.frames) + verdict.more
+            ctx.log(
+                "estimate_more_frames",
+                frames=len(self.frames),
+                more=verdict.more,
+                yaw_sigma_deg=round(math.degrees(fused.spread.yaw_rad), 3),
+                limit_deg=ctx.settings.estimate_yaw_sigma_deg,
+            )
+            return None
+        return self._judge(ctx, fused)
+
+    def _restart(self, ctx: Context) -> None:
+        """Forget the frames and estimates taken so far (the truck moved): start the first round again."""
+        self.frames.clear()
+        self.estimates, self.errors = [], []
+        self.wanted = max(1, ctx.settings.frames_per_estimate)
+
+    def _blocked_in_front(self, ctx: Context) -> bool:
+        """No pallet seen: is a person or an object standing in the entry volume before the pallet node
+        (hiding it)? Then hold and look again every `RECHECK_S`; `path_blocked` after the wait."""
+        assert ctx.perception is not None and ctx.calibration is not None
+        node = ctx.roadmap.node(ctx.pallet_node)
+        spec = entry_volume_at(ctx, pallet_pose_at_node(node.pose, node.height).to_se2())
+        frame = self.frames[-1][0] if self.frames else None
+        self._restart(ctx)
+        if spec is None or frame is None:
+            return False
+        look = ctx.perception.check_volume(frame, ctx.calibration, spec[0])
+        if not (look.occupied and look.seen >= MIN_SEEN):
+            return False
+        now = ctx.now()
+        if self.blocked_since is None:
+            self.blocked_since = now
+            ctx.log("entry_blocked", what="the pallet's entry volume", why="no pallet seen past it", **look.to_json())
+        if now - self.blocked_since >= ctx.settings.blocked_wait_s:
+            raise TaskFailed(
+                PATH_BLOCKED,
+                f"the pallet's entry volume is not free after {now - self.blocked_since:.0f} s: the camera sees "
+                f"{look.points} points of an object {look.nearest_x_m:.2f} m ahead, and no pallet past it",
+            )
+        self.look_at = now + RECHECK_S
+        return True
+
+    def _judge(self, ctx: Context, est: PalletEstimate) -> str:
+        assert est.T_world_pallet is not None
+        _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.estimated_pallet)
+        ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
+        node = ctx.roadmap.node(ctx.pallet_node)
+        al = check_alignment(est.T_world_pallet, node, _tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
+        world = est.T_world_pallet.to_se2()
+        entry: dict[str, Any] = {
+            "problems": list(al.problems),
+            "attempt": ctx.attempts,
+            "against_node": ctx.pallet_node,
+            "T_world_pallet": {
+                "x_m": round(world.x, 4),
+                "y_m": round(world.y, 4),
+                "yaw_deg": round(math.degrees(world.yaw), 3),
+            },
+            "lateral_mm": round(al.lateral_m * 1e3, 1),
+            "longitudinal_mm": round(al.longitudinal_m * 1e3, 1),
+            "yaw_deg": round(math.degrees(al.yaw_rad), 3),
+            "uncertainty_mm_mm_deg": [
+                round(al.uncertainty[0] * 1e3, 1),
+                round(al.uncertainty[1] * 1e3, 1),
+                round(math.degrees(al.uncertainty[2]), 3),
+            ],
+            "aligned": al.aligned,
+        }
+        ctx.record.setdefault("estimates", []).append(entry)
+        ctx.log("pallet_estimate", **entry)
+        if al.aligned:
+            return "aligned"
+        if ctx.attempts >= ctx.settings.max_attempts:
+            raise TaskFailed(
+                STILL_MISALIGNED,
+                f"pallet still off after {ctx.attempts} estimates: {entry['lateral_mm']} mm lateral, "
+                f"{entry['longitudinal_mm']} mm along, {entry['yaw_deg']} deg",
+            )
+        return "misaligned"
+
+    def stop(self, ctx: Context) -> None:
+        if self.job is not None:
+            self.job.cancel()
+
+
+def _frame_policy(ctx: Context) -> FramePolicy:
+    """The Settings' frames per estimate as a `FramePolicy`."""
+    st = ctx.settings
+    per = max(1, st.frames_per_estimate)
+    return FramePolicy(per, max(per, st.max_frames_per_estimate), math.radians(st.estimate_yaw_sigma_deg))
+
+
+def _expected_pallet(ctx: Context) -> SE2:
+    """Where this pickup's pallet is expected (`T_world_pallet`, world): the previous estimate, else the
+    pallet node's nominal pose. Perception fits only the pallet instance standing there."""
+    if ctx.estimated_pallet is not None:
+        return ctx.estimated_pallet.to_se2()
+    node = ctx.roadmap.node(ctx.pallet_node)
+    return pallet_pose_at_node(node.pose, node.height).to_se2()
+
+
+def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:
+    """The estimated pallet (`T_world_pallet`, SE2) must be the mission's: inside the envelope of the task's
+    node (`Settings.envelope_*`) and where the previous estimate of this pickup saw it; else
+    `pallet_not_found` with the figures, and nothing is re-planned towards it."""
+    st = ctx.settings
+    node = ctx.roadmap.node(ctx.task.node)
+    nominal = pallet_pose_at_node(node.pose, node.height).to_se2()
+    off = nominal.inv() @ pallet
+    yaw_deg = math.degrees(off.yaw)
+    if abs(off.y) > st.envelope_lateral or abs(off.x) > st.envelope_longitudinal or abs(yaw_deg) > st.envelope_yaw_deg:
+        raise TaskFailed(
+            PALLET_NOT_FOUND,
+            f"the pallet seen stands {off.y:+.2f} m to the side, {off.x:+.2f} m along and {yaw_deg:+.1f} deg off "
+            f"node '{node.id}' (envelope +-{st.envelope_lateral:.2f} m, +-{st.envelope_longitudinal:.2f} m, "
+            f"+-{st.envelope_yaw_deg:.0f} deg): not the mission's pallet",
+        )
+    if previous is not None:
+        jump = previous.to_se2().distance_to(pallet)
+        if jump > st.estimate_jump:
+            raise TaskFailed(
+                PALLET_NOT_FOUND,
+                f"the pallet estimate jumped {jump:.2f} m from the previous one (limit {st.estimate_jump:.2f} m): "
+                "another object, not the pallet seen before",
+            )
+
+
+def _tolerances(ctx: Context) -> AlignmentTolerances:
+    """The alignment tolerances of this truck's forks and the pallet type, less the Settings' margins."""
+    return AlignmentTolerances.from_geometry(
+        ctx.forks,
+        ctx.pallet_type,
+        lateral_margin_m=ctx.settings.lateral_margin,
+        longitudinal_margin_m=ctx.settings.longitudinal_margin,
+        yaw_limit_deg=ctx.settings.yaw_limit_deg,
+    )
+
+
+def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
+    """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
+    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
+
+    Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would no longer reach the
+    pallet's back row of blocks (the alignment's far tolerance): the mast would meet the rack first.
+    """
+    original = ctx.roadmap.node(ctx.task.node)
+    if original.height <= 0.0:
+        return pallet_node_pose
+    rel = original.pose.inv() @ pallet_node_pose
+    excess = rel.x - ctx.settings.rack_overrun
+    if excess <= 0.0:
+        return pallet_node_pose
+    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
+    far = _tolerances(ctx).longitudinal_far_m
+    if back > far:
+        raise TaskFailed(
+            NO_FEASIBLE_APPROACH,
+            f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
+            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
+            f"tips would then stop {back * 1e3:.0f} mm short (more than the {far * 1e3:.0f} mm that still "
+            "reaches the back blocks)",
+        )
+    return pallet_node_pose @ SE2(-back, 0.0, 0.0)
+
+
+def approach_curve(ctx: Context, spec: TemporaryNodes) -> Curve:
+    """The forward curve from `spec.before` (the truck heading `spec.heading` there) to the new pre-pallet
+    pose under the vehicle's curvature limit; `RoadmapError` says why there is none."""
+    before = ctx.roadmap.node(spec.before)
+    return connect(SE2(before.pose.x, before.pose.y, spec.heading), spec.pre_pose, ctx.params.max_curvature)
+
+
+def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None = None) -> list[Edge]:
+    """Add a re-plan's temporary pallet and pre-pallet nodes and their edges to the task's overlay; the
+    edges added (the approach curve `spec.before` <-> new pre-pallet node, and the straight entry).
+
+    `curve`: the approach curve when the caller made it already (`approach_curve`). Raises
+    `TaskFailed(no_feasible_approach)` when no drivable curve joins `spec.before` to the new pre-pallet
+    node. Used by `Replan` and, with the journalled record, by a resume: the same record, the same graph.
+    """
+    assert ctx.overlay is not None
+    original = ctx.roadmap.node(ctx.task.node)
+    original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+    if curve is None:
+        try:
+            curve = approach_curve(ctx, spec)
+        except RoadmapError as exc:
+            raise TaskFailed(
+                NO_FEASIBLE_APPROACH, f"no feasible approach to the estimated pallet from '{spec.before}': {exc}"
+            ) from None
+    ov = ctx.overlay
+    ov.add_node(Node(spec.pre, NodeType.PRE_PALLET, spec.pre_pose))
+    ov.add_node(Node(spec.pallet, NodeType.PALLET, spec.pallet_pose, height=original.height, pre_pallet=spec.pre))
+    entry_speed = ctx.roadmap.edge(original_pre.id, original.id).speed_limit
+    edges = [
+        ov.add_edge(Edge(spec.before, spec.pre, curve, Direction.FORWARD, 0.5)),
+        ov.add_edge(Edge(spec.pre, spec.before, curve.reversed(), Direction.REVERSE, 0.5)),
+        ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed)),
+        ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed)),
+    ]
+    ctx.temporary.append(spec)
+    ctx.log(
+        "replanned",
+        pallet=spec.pallet,
+        pre_pallet=spec.pre,
+        curve=curve.kind,
+        joined_to=spec.before,
+        via=list(spec.back_path),
+    )
+    return edges
+
+
+def nodes_back(ctx: Context, start: str, heading: float, limit: int) -> list[tuple[str, float, tuple[str, ...]]]:
+    """Up to `limit` nodes to join a re-plan's new pre-pallet node to, nearest first: `start` (the node the
+    truck backed off to, where it heads `heading`, rad), then nodes further back. Each as (node, the truck's
+    heading there, the nodes it backs along from `start` to it, both included).
+
+    A step back from a node goes to the node before it on the route that reached the task's pre-pallet
+    node (`ctx.route_to_pre`), else to a roadmap predecessor joined to it both ways; always along an edge
+    driven in reverse that leaves with the truck's heading, never to a pallet, drop or temporary node.
+    """
+    path: tuple[str, ...] = (start,)
+    out = [(start, heading, path)]
+    if start not in ctx.roadmap:
+        return out
+    seen = {start, ctx.pre_node, ctx.task.node, ctx.roadmap.pre_pallet_of(ctx.task.node)}
+    here, yaw = start, heading
+    while len(out) < limit:
+        step = _step_back(ctx, here, yaw, seen)
+        if step is None:
+            break
+        here, yaw, path = step.end, step.yaw_end, (*path, step.end)
+        seen.add(here)
+        out.append((here, yaw, path))
+    return out
+
+
+def _step_back(ctx: Context, here: str, heading: float, seen: set[str]) -> Edge | None:
+    """The reverse edge from `here` one node further back (see `nodes_back`), or None."""
+    graph, route = ctx.roadmap.graph, ctx.route_to_pre
+    on_route = [route[i - 1] for i in range(1, len(route)) if route[i] == here]
+    for u in [*on_route, *(p for p in graph.predecessors(here) if p not in on_route)]:
+        if u in seen or u not in graph or not (graph.has_edge(here, u) and graph.has_edge(u, here)):
+            continue
+        node = ctx.roadmap.node(u)
+        if node.temporary or node.type in (NodeType.PALLET, NodeType.DROP):
+            continue
+        edge = ctx.roadmap.edge(here, u)
+        same_heading = abs(angle_diff(edge.yaw_start, heading)) <= 2 * TANGENT_TOLERANCE_RAD
+        if edge.direction is Direction.REVERSE and same_heading:
+            return edge
+    return None
+
+
+def approach_route(ctx: Context) -> Route:
+    """The approach to a re-plan's new pre-pallet node: from where the truck stands, back along the roadmap
+    to the node the new node is joined to (when that lies further back), then forward along the new curve."""
+    spec = ctx.temporary[-1] if ctx.temporary and ctx.temporary[-1].pre == ctx.pre_node else None
+    if spec is None:
+        nodes = [ctx.node_before or "", ctx.pre_node]
+    else:
+        path = spec.back_path
+        first = path.index(ctx.at_node) if ctx.at_node in path else 0
+        nodes = [*path[first:], spec.pre]
+    return Route(nodes, [ctx.roadmap.edge(a, b) for a, b in itertools.pairwise(nodes)])
+
+
+class Replan(Behaviour):
+    """Add temporary pallet and pre-pallet nodes from the estimate, joined by a drivable curve to the node
+    the truck backed off to or, when no curve fits from there, to a node further back along the route
+    (`nodes_back`, at most `Settings.replan_back_nodes` nodes tried); the approach then backs the truck
+    to that node first (`approach_route`), and the return to the roadmap leaves through it."""
+
+    def update(self, ctx: Context) -> str | None:
+        assert ctx.estimated_pallet is not None and ctx.overlay is not None
+        original = ctx.roadmap.node(ctx.task.node)
+        original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+        standoff = original.pose.distance_to(original_pre.pose)
+        new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.estimated_pallet))
+        k = ctx.attempts
+        limit = max(1, ctx.settings.replan_back_nodes)
+        failures: list[str] = []
+        for before, heading, path in nodes_back(ctx, ctx.node_before or "", ctx.heading, limit):
+            spec = TemporaryNodes(
+                k=k,
+                pallet=f"{ctx.task.node}~{k}",
+                pre=f"{original_pre.id}~{k}",
+                pallet_pose=new_pallet_pose,
+                pre_pose=new_pallet_pose @ SE2(-standoff, 0.0, 0.0),
+                before=before,
+                heading=heading,
+                via=path if len(path) > 1 else (),
+            )
+            try:
+                curve = approach_curve(ctx, spec)
+            except RoadmapError as exc:
+                failures.append(f"from '{before}': {exc}")
+                ctx.log("approach_infeasible", node=before, error=str(exc))
+                continue
+            self._add(ctx, spec, curve, tried=len(failures) + 1)
+            return "done"
+        n = len(failures)
+        raise TaskFailed(
+            NO_FEASIBLE_APPROACH,
+            f"no feasible approach to the estimated pallet: tried {n} node{'' if n == 1 else 's'} back along "
+            f"the route (at most {limit}): " + "; ".join(failures),
+        )
+
+    @staticmethod
+    def _add(ctx: Context, spec: TemporaryNodes, curve: Curve, tried: int) -> None:
+        edges = add_temporary_nodes(ctx, spec, curve)
+        ctx.pallet_node, ctx.pre_node, ctx.node_before = spec.pallet, spec.pre, spec.before
+        pose = spec.pallet_pose
+        ctx.record.setdefault("temporary_nodes", []).append(
+            {
+                "pallet": spec.pallet,
+                "pre_pallet": spec.pre,
+                "x_m": round(pose.x, 4),
+                "y_m": round(pose.y, 4),
+                "yaw_deg": round(math.degrees(pose.yaw), 3),
+                "joined_to": spec.before,
+                "nodes_tried": tried,
+                "backs_along": list(spec.back_path),
+                "curve": curve.kind,
+                "edges": [e.name for e in edges],
+            }
+        )
+
+
+class SafetyCheck(Behaviour):
+    """Both fork-tip beams must pass through the pockets: never enter when one stops at the pallet."""
+
+    def update(self, ctx: Context) -> str | None:
+        pre = ctx.roadmap.node(ctx.pre_node)
+        pallet = ctx.roadmap.node(ctx.pallet_node)
+        face = pre.pose.distance_to(pallet.pose) + ENTRY_GAP_M - ctx.forks.tip_x  # tips to the entry face
+        need = face + ctx.pallet_type.length - ctx.settings.beam_margin
+        left, right = ctx.vehicle.proximity_ranges()
+        ctx.log("safety_check", left_m=round(left, 3), right_m=round(right, 3), need_m=round(need, 3))
+        if left < need or right < need:
+            raise TaskFailed(
+                SAFETY_CHECK_FAILED,
+                f"proximity beams blocked: left {left:.2f} m, right {right:.2f} m, a pocket passes beyond {need:.2f} m",
+            )
+        # A clear beam may also pass beside the pallet: with an estimate, each fork must lie in its pocket.
+        if ctx.estimated_pallet is not None:
+            problems = forks_outside_pockets(ctx, ctx.estimated_pallet.to_se2(), ctx.vehicle.localization())
+            if problems:
+                raise TaskFailed(SAFETY_CHECK_FAILED, "; ".join(problems))
+        return "done"
+
+
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
+    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
+    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
+    tip's depth. Both poses are in the world frame (SE2)."""
+    forks, pallet = ctx.forks, ctx.pallet_type
+    T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
+    depth = min(pallet.length, forks.length)
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
+    problems = []
+    for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
+        worst = 0.0
+        for x_pallet in (0.0, depth):
+            # the fork's centre line, a line along the forklift's x axis, at this depth in the pallet
+            c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
+            origin = T_pallet_forklift.apply([0.0, fork_y])
+            if abs(c) < 1e-6:
+                worst = math.inf
+                break
+            y = origin[1] + (x_pallet - origin[0]) * s_ / c
+            worst = max(worst, abs(y - pocket_y) - half_free)
+        if worst > 0.0:
+            problems.append(f"the {name} fork would pass {worst * 1e3:.0f} mm beside its pocket")
+    return problems
