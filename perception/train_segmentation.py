@@ -6,7 +6,7 @@ Usage (torch and onnx come with the optional `train` extra; CPU is enough)::
     python -m palletpilot.perception.train_segmentation DATA_DIR [DATA_DIR ...] --out perception/models/segmenter.onnx \
         --seed 0 [--steps N | --minutes M] [--heldout HELDOUT_DIR] [--batch 12] [--crop 384 288] \
         [--focus 0.75] [--weight-power 0.5] [--dice 0.5] [--channels 16,32,48,64,96] [--refine 0] [--lr 4e-3] \
-        [--threads 2]
+        [--threads 2] [--workers 0] [--device cpu] [--weights-out W.pt]
 
 `--init MODEL.onnx` fine-tunes an exported model instead of training from scratch (its weights and widths,
 `perception.segmentation_data.import_onnx_weights`; batch norms frozen; peak learning rate 1e-3 unless
@@ -31,7 +31,11 @@ ignore; `perception.segmentation_data`). The script never imports the simulator.
    flips and photometric effects drawn anew every step (brightness, contrast, white balance, gamma,
    vignetting, Gaussian or motion blur, luminance and colour noise, JPEG re-encoding). AdamW with a
    warm-up plus cosine learning rate. Deterministic for `--seed`, `--steps`, the data and `--threads`
-   (torch, numpy and the crop order are seeded; single process). `--minutes M` picks the step count
+   (torch, numpy and the crop order are seeded; single process). `--workers N` makes the batches in N
+   forked processes ahead of the training loop, each batch from its own generator seeded by (seed, step),
+   so the crops do not depend on N (but differ from the single-process runs'); `--device cuda` trains on a
+   GPU (not run here yet: the project's one GPU attempt ended before training, `perception/models/README.md`).
+   `--minutes M` picks the step count
    from the measured speed and prints it, so that run is repeated with `--steps N`.
 3. Export to ONNX (opset 17): input `rgb` (1, 3, 480, 640) float32, normalised; outputs `logits`
    (1, 10, 480, 640) and `labels` (1, 480, 640) uint8, their per-pixel argmax (computed in the graph,
