@@ -3,7 +3,10 @@ dies retried once then reported, and a clear refusal without Ray. The Ray tests 
 instance (about 5 s) and are skipped where Ray is not installed (`pip install 'palletpilot[cluster]'`)."""
 
 import json
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -74,3 +77,37 @@ def test_a_run_whose_worker_dies_is_retried_once_then_an_error_and_the_others_fi
     assert killed["reason"].startswith("internal error: the run's worker died twice: ")
     assert fine["outcome"] == "rejected" and fine["met"] and not fine["retried"]
     assert 'errors="1"' in junit.read_text()
+
+
+def test_ctrl_c_cancels_the_tasks_and_still_writes_the_summary_of_what_finished(tmp_path):
+    pytest.importorskip("ray")
+    folder = SUITE.parent
+    suite = {
+        "name": "interrupted",
+        "cases": [
+            {"name": "quick", "mission": str(folder / "bad_unknown_node.yaml"), "expect": "rejected"},
+            {
+                "name": "long",
+                "mission": str(folder / "pickup_floor_b2.yaml"),
+                "scenario": str(folder / "floor_b2.yaml"),
+            },
+        ],
+    }
+    (tmp_path / "suite.yaml").write_text(yaml.safe_dump(suite))
+    report, junit = tmp_path / "report", tmp_path / "junit.xml"
+    cmd = [str(Path(sys.executable).parent / "palletpilot"), "test", str(tmp_path / "suite.yaml"), "--json"]
+    cmd += ["--executor", "ray", "--jobs", "1", "--report", str(report), "--junit", str(junit)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    for line in proc.stderr:  # the quick run's line, then Ctrl-C while the long run is on the cluster
+        if line.startswith("[1/2]"):
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted: 1 of 2 runs finished, the cluster's tasks cancelled" in err
+    (quick,) = json.loads(out)["results"]
+    assert quick["label"] == "quick#0" and quick["met"]
+    assert json.loads((report / "suite.json").read_text())["runs"] == 1
+    assert 'tests="1"' in junit.read_text()
