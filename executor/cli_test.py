@@ -72,18 +72,18 @@ def cmd_test(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     t0 = time.perf_counter()
-    interrupted = False
+    interrupted, jobs = False, args.jobs or 1
     if executor is Executor.RAY:
 
         def progress(r: RunResult, done: int) -> None:
             print(progress_line(r, done, len(specs)), file=sys.stderr, flush=True)
 
         outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress)
-        results, interrupted = outcome.results, outcome.interrupted
+        results, interrupted, jobs = outcome.results, outcome.interrupted, outcome.jobs
     else:
-        results = _run_all(specs, report, args.jobs or 1)
+        results = _run_all(specs, report, jobs)
     wall_s = time.perf_counter() - t0
-    doc = suite_json(suite.name, results, wall_s, args.jobs or 1)
+    doc = suite_json(suite.name, results, wall_s, jobs)
     write_json(report / "suite.json", doc)
     if args.junit:
         write_atomic(args.junit, junit_xml(suite.name, results, wall_s))

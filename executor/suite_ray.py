@@ -45,9 +45,11 @@ class Executor(str, Enum):
 
 @dataclass
 class RayOutcome:
-    """The runs that finished, in the suite's order, and whether Ctrl-C stopped the campaign."""
+    """The runs that finished, in the suite's order, how many ran at a time, and whether Ctrl-C stopped
+    the campaign."""
 
     results: list[RunResult]
+    jobs: int
     interrupted: bool = False
 
 
@@ -159,4 +161,4 @@ def run_on_ray(
     finally:
         if started:
             ray.shutdown()
-    return RayOutcome([results[k] for k in sorted(results)], interrupted)
+    return RayOutcome([results[k] for k in sorted(results)], limit, interrupted)

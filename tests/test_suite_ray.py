@@ -46,6 +46,7 @@ def test_a_suite_on_ray_gives_the_local_verdicts_figures_and_reports(tmp_path):
     for x, y in zip(a, b, strict=True):
         same = ("outcome", "met", "reason", "problems", "simulated_s", "drawn", "retried")
         assert {k: x[k] for k in same} == {k: y[k] for k in same}
+    assert json.loads((on_ray / "suite.json").read_text())["jobs"] == 2
     assert b[0]["report_dir"] == str(on_ray / "person_on_the_route" / "0")  # the report came back to the head
     for name in ("report.json", "trajectory.csv", "events.jsonl", "run.mcap"):
         assert (on_ray / "person_on_the_route" / "0" / name).is_file()
