@@ -20,6 +20,11 @@ from palletpilot.control.vehicle import VehicleParams
 from palletpilot.geometry import SE2
 
 
+def _clip(value: float, lo: float, hi: float) -> float:
+    """`value` limited to [lo, hi] as a float, as `float(np.clip(...))` gives it, without numpy's cost."""
+    return float(min(max(value, lo), hi))
+
+
 @dataclass
 class ForkliftState:
     """True state of the simulated forklift (world frame, SI units)."""
@@ -59,13 +64,13 @@ class SimForklift:
         p = self.params
         if self.emergency:
             return
-        self.speed_cmd = float(np.clip(speed, -p.max_speed_reverse, p.max_speed_forward))
-        self.steering_cmd = float(np.clip(steering, -p.max_steering, p.max_steering))
+        self.speed_cmd = _clip(speed, -p.max_speed_reverse, p.max_speed_forward)
+        self.steering_cmd = _clip(steering, -p.max_steering, p.max_steering)
 
     def command_fork_height(self, height: float) -> None:
         """Set the fork height target (m), clipped to the mast's range."""
         m = self.params.mast
-        self.fork_height_cmd = float(np.clip(height, m.min_height, m.max_height))
+        self.fork_height_cmd = _clip(height, m.min_height, m.max_height)
 
     def stop(self) -> None:
         """Command zero speed (the actuators still brake at their limits); steering is held."""
@@ -87,17 +92,17 @@ class SimForklift:
         hard = self.emergency or self.protective_stop
         cmd = 0.0 if hard else self.speed_cmd
         if self.speed_cap is not None:
-            cmd = float(np.clip(cmd, -self.speed_cap, self.speed_cap))
+            cmd = _clip(cmd, -self.speed_cap, self.speed_cap)
         over_cap = self.speed_cap is not None and abs(s.v) > self.speed_cap  # safe speed: braked, not lagged
         dv = (cmd - s.v) * (1.0 if hard or over_cap else min(1.0, dt / lag))
         braking = abs(cmd) < abs(s.v) or cmd * s.v < 0
         decel = p.emergency_decel if hard else p.max_decel
         dv_max = (decel if braking else p.max_accel) * dt
-        v_new = s.v + float(np.clip(dv, -dv_max, dv_max))
+        v_new = s.v + _clip(dv, -dv_max, dv_max)
         # Steering: first-order lag towards the command, bounded by the steering rate and angle.
         rate = math.radians(p.max_steering_rate_deg_s)
-        dd = float(np.clip((self.steering_cmd - s.steering) * min(1.0, dt / lag), -rate * dt, rate * dt))
-        steering = float(np.clip(s.steering + dd, -p.max_steering, p.max_steering))
+        dd = _clip((self.steering_cmd - s.steering) * min(1.0, dt / lag), -rate * dt, rate * dt)
+        steering = _clip(s.steering + dd, -p.max_steering, p.max_steering)
 
         v_mean = 0.5 * (s.v + v_new)
         dist = v_mean * dt
@@ -118,7 +123,7 @@ class SimForklift:
         m = self.params.mast
         dh = self.fork_height_cmd - s.fork_height
         limit = (m.lift_speed if dh > 0 else m.lower_speed) * dt
-        s.fork_height += float(np.clip(dh, -limit, limit))
+        s.fork_height += _clip(dh, -limit, limit)
 
     @property
     def stopped(self) -> bool:

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
+
 from palletpilot.control.safety import FieldRect, FieldSet, SafetyState, TravelDirection, safety_fields
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.geometry import SE2
-from palletpilot.sim.contacts import Solid, box_solid, overlapping
+from palletpilot.sim.contacts import Solid, SolidSet, box_solid, overlap_matrix
 
 _MOVING = 1e-3  # m/s
 
@@ -54,15 +56,33 @@ class SimScanner:
             for k, r in enumerate(rects)
         ]
 
-    def _hits(self, rects: Sequence[FieldRect], pose: SE2, world: Sequence[Solid]) -> list[Solid]:
-        found: dict[tuple[str, str], Solid] = {}
-        for field in self._zone(rects, pose):
-            for solid in overlapping(field, world):
-                found.setdefault((solid.kind, solid.id), solid)
-        return list(found.values())
+    def _hits(self, groups: Sequence[Sequence[FieldRect]], pose: SE2, world: SolidSet) -> list[list[Solid]]:
+        """For each group of field rectangles (forklift frame, the truck at `pose`), the world solids in
+        any of them (each once, by kind and id), all groups tested in one go."""
+        scanner = self.params.safety_scanner
+        assert scanner is not None
+        rects = [r for group in groups for r in group]
+        if not rects or not len(world):
+            return [[] for _ in groups]
+        z0, z1 = scanner.scan_height - 0.01, scanner.scan_height + 0.01
+        lo = np.array([(r.x0, r.y0, z0) for r in rects])
+        hi = np.array([(r.x1, r.y1, z1) for r in rects])
+        inside = overlap_matrix(SolidSet.boxes(["field"] * len(rects), lo, hi, pose), world)
+        found: list[dict[tuple[str, str], Solid]] = [{} for _ in groups]
+        group_of = [g for g, group in enumerate(groups) for _ in group]
+        for i, j in zip(*np.nonzero(inside), strict=True):  # by field, then in the world's order
+            solid = world.solids[j]
+            found[group_of[i]].setdefault((solid.kind, solid.id), solid)
+        return [list(f.values()) for f in found]
 
     def update(
-        self, dt: float, pose: SE2, speed: float, speed_cmd: float, front_x: float, world: Sequence[Solid]
+        self,
+        dt: float,
+        pose: SE2,
+        speed: float,
+        speed_cmd: float,
+        front_x: float,
+        world: Sequence[Solid] | SolidSet,
     ) -> SafetyState:
         """One step (`dt`, s) at the true `pose` (world), measured `speed` and commanded `speed_cmd` (m/s);
         `front_x` (m, forklift frame) is the truck's leading end going forward; `world` the solids."""
@@ -76,14 +96,14 @@ class SimScanner:
         direction = self.direction
         fields = safety_fields(self.params, speed, direction, self.field_set, front_x)
         assert fields is not None
-        protective = self._hits(fields.protective, pose, world)
-        warning = self._hits(fields.warning, pose, world)
         restart = safety_fields(self.params, max(abs(speed), scanner.warning_speed), direction, self.field_set, front_x)
         assert restart is not None
+        groups = [fields.protective, fields.warning] + ([restart.protective] if self.held else [])
+        protective, warning, *waiting = self._hits(groups, pose, SolidSet.of(world))
         if protective:
             self.held, self.clear_s = True, 0.0
         elif self.held:
-            if self._hits(restart.protective, pose, world):
+            if waiting[0]:
                 self.clear_s = 0.0
             else:
                 self.clear_s += dt

@@ -37,12 +37,13 @@ from palletpilot.perception.specs import (
 )
 from palletpilot.roadmap import NodeType, Roadmap, load_map, map_vehicle_file
 from palletpilot.sim.camera import CameraModel, RaycastRenderer
-from palletpilot.sim.contacts import Solid, box_solid, first_contact, rack_solids, solid_corners
+from palletpilot.sim.contacts import Contact, Solid, box_solid, first_contact, first_pair, rack_solids, solid_corners
 from palletpilot.sim.forklift import LocalizationNoise, SimForklift
 from palletpilot.sim.pallets import PalletPhysics, RackSupport, SimPallet
 from palletpilot.sim.scanner import SimScanner
 from palletpilot.sim.scenario import Scenario, SimError
 from palletpilot.sim.snapshot import restore_snapshot, take_snapshot
+from palletpilot.sim.solid_cache import SolidCache, WorldSolids
 from palletpilot.sim.world import (
     LabeledMesh,
     Rack,
@@ -142,6 +143,7 @@ class Simulator(PalletPhysics):
         self._racks = self._build_racks()
         self._fixed_mesh = self._build_fixed_mesh()
         self._fixed_solids = self._build_fixed_solids()
+        self._solid_cache = SolidCache(self._fixed_solids)
         self._forks_local = forks_mesh(self.forks, 0.0, SE3.identity())  # forklift frame, lift height 0
         self._renderer: RaycastRenderer | None = None
         self._beam_scene: o3d.t.geometry.RaycastingScene | None = None
@@ -204,6 +206,8 @@ class Simulator(PalletPhysics):
         """Walk the people on by `dt` (s); one who would come within `WALKER_YIELD_M` of the truck, or
         step into its protective field, waits (people give way to a forklift), so a walker never steps
         into the truck. One the truck has come close to walks on only where it does not come closer."""
+        if not any(c.path for c in self.scenario.clutter):
+            return
         truck: list[Solid] = []
         m, f = WALKER_YIELD_M, 0.1
         field = [dataclasses.replace(s, z=(0.0, 2.0)) for s in self.scanner.protective_zone]
@@ -326,18 +330,26 @@ class Simulator(PalletPhysics):
         return hull, forks
 
     def _check_contacts(self) -> None:
-        """Record the first contact of the truck with anything and stop it there."""
+        """Record the first contact of the truck with anything and stop it there: the body and a carried
+        pallet against everything (static solids, walking people, resting pallets and loads), then the
+        forks and backrest against all but the resting pallets, which they meet through their boards and
+        blocks (`_contact`)."""
         if self.collisions:
             return
-        hull, forks = self._truck_solids()
-        standing = [p for p in self.pallets if not p.carried]
-        pallets = [s for p in standing for s in self._pallet_solids(p)]
-        loads = [s for s in pallets if s.kind == "load"]
-        # The forks meet pallets through their boards and blocks (`_contact`), loads and the rest here.
-        fixed = self._fixed_solids + self._walker_solids()
-        contact = first_contact(hull, fixed + pallets) or first_contact(forks, fixed + loads)
-        if contact is not None:
+        world = self._world_solids()
+        carried = [s for p in self.pallets if p.carried for s in self._pallet_solids(p, kind="carried pallet")]
+        body = self.vehicle.body
+        box = (np.array([body.rear_x, -0.5 * body.width, 0.0]), np.array([body.front_x, 0.5 * body.width, body.height]))
+        truck = self._solid_cache.truck(self.true_pose, box, self._fork_set(), carried)
+        forks = np.arange(len(truck)) > len(carried)  # the parts after the body and the carried ones
+        pair = first_pair(truck, world.solids, mask=~(forks[:, None] & world.pallet[None, :]))
+        if pair is not None:
+            contact = Contact(truck.kinds[pair[0]], world.solids.solids[pair[1]])
             self._collide(contact.to_json(self.time))
+
+    def _world_solids(self) -> WorldSolids:
+        """What the truck can meet now: static solids, walking people, resting pallets and their loads."""
+        return self._solid_cache.world(self.pallets, self._walker_solids(), self._pallet_solids)
 
     def _collide(self, record: dict[str, Any]) -> None:
         self.collisions.append(record)
@@ -351,6 +363,7 @@ class Simulator(PalletPhysics):
     def _static_changed(self) -> None:
         self._renderer = None
         self._beam_scene = None
+        self._solid_cache.clear()
 
     def static_changed(self) -> None:
         """Say that the set of resting pallets changed from outside the simulation (a restored state): the
@@ -427,17 +440,13 @@ class Simulator(PalletPhysics):
             raise SimError(f"unknown safety field set '{name}' (one of {', '.join(FIELD_SETS)})")
         self.scanner.field_set = "narrow" if name == "narrow" else "normal"
 
-    def _scanner_world(self) -> list[Solid]:
-        """What the scan plane can meet: walls, racks, people, boxes, resting pallets and their loads."""
-        pallets = [s for p in self.pallets if not p.carried for s in self._pallet_solids(p)]
-        return self._fixed_solids + self._walker_solids() + pallets
-
     def _front_x(self) -> float:
         """The truck's leading end going forward (m, forklift frame): the fork tips or a carried pallet."""
         front = self.forks.tip_x
-        T_fw = self.T_world_forklift3.inv()
-        for p in self.pallets:
-            if p.carried:
+        carried = [p for p in self.pallets if p.carried]
+        if carried:
+            T_fw = self.T_world_forklift3.inv()
+            for p in carried:
                 far = T_fw @ p.T_world_pallet @ SE3.from_translation(p.type.length, 0.0, 0.0)
                 front = max(front, float(far.t[0]))
         return front
@@ -447,16 +456,16 @@ class Simulator(PalletPhysics):
         if not self.scanner.enabled:
             return
         fl = self.forklift
-        state = self.scanner.update(
-            dt, self.true_pose, fl.state.v, fl.speed_cmd, self._front_x(), self._scanner_world()
-        )
+        # The scan plane meets walls, racks, people, boxes, resting pallets and their loads.
+        world = self._world_solids().solids
+        state = self.scanner.update(dt, self.true_pose, fl.state.v, fl.speed_cmd, self._front_x(), world)
         fl.protective_stop = state.protective_stop
         fl.speed_cap = state.speed_limit
 
     @property
     def T_world_forklift3(self) -> SE3:
         """True forklift pose as SE3 (on the floor)."""
-        return self.true_pose.to_se3()
+        return self._solid_cache.pose3(self.true_pose)
 
     def proximity_ranges(self) -> tuple[float, float]:
         """Ranges (m) of the (left, right) beams shot forward from the fork tips at mid-blade height.

@@ -221,7 +221,7 @@ SNAPSHOT_ATTRIBUTES |= {"collisions", "pallets", "battery_level", "walk_t", "sca
 FIXED_ATTRIBUTES = {"scenario", "roadmap", "vehicle", "forks", "pallet_type"}
 FIXED_ATTRIBUTES |= {"localization_noise", "camera", "_racks", "_fixed_mesh", "_forks_local", "_fixed_solids"}
 FIXED_ATTRIBUTES |= {"_chargers"}
-CACHE_ATTRIBUTES = {"_renderer", "_beam_scene"}  # dropped by restore (`_static_changed`)
+CACHE_ATTRIBUTES = {"_renderer", "_beam_scene", "_solid_cache"}  # dropped by restore (`_static_changed`)
 
 
 def test_the_snapshot_covers_every_piece_of_simulator_state():

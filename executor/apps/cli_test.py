@@ -1,10 +1,14 @@
-"""`palletpilot test SUITE.yaml [--jobs N] [--junit FILE] [--report DIR] [--only NAME,...] [--json]`.
+"""`palletpilot test SUITE.yaml [--jobs N] [--executor local|ray] [--ray-address ADDR] [--junit FILE]
+[--report DIR] [--only NAME,...] [--json]`.
 
 Runs every case of a mission test suite (`executor.suite`) in the simulator, `--jobs` worker processes
 at a time (each run is deterministic for its seed, whatever the order), prints a line per finished run
 on stderr, then the summary table (each run that did not meet its case with its reasons and the paths
 to its report and trajectory image); `--junit FILE` writes JUnit XML, `--report DIR` (default
 `test-reports/<suite name>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`.
+`--executor ray` runs each run as a Ray task instead (`executor.apps.suite_ray`: a local Ray instance, or the
+cluster at `--ray-address`; `--jobs` then caps the runs at a time, default the cluster's CPUs); Ctrl-C
+there cancels the cluster's tasks, writes the summary and JUnit of the runs that finished, exit 130.
 
 Exit codes: 0 every run met its case, 1 some did not, 2 a bad suite file or option (one line per
 problem), 3 an output that could not be written.
@@ -21,6 +25,7 @@ from pathlib import Path
 
 from palletpilot.executor.apps.cli_args import count, out_file, out_folder
 from palletpilot.executor.apps.suite import RunSpec, SuiteError, load_suite
+from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ray
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 from palletpilot.geometry.fileio import write_atomic, write_json
@@ -52,21 +57,41 @@ def cmd_test(args: argparse.Namespace) -> int:
     if unknown:
         known = ", ".join(c.name for c in suite.cases)
         raise SuiteError(f"--only: no case named {', '.join(unknown)} in {args.suite} (cases: {known})")
+    executor = Executor(args.executor)
+    if executor is Executor.RAY and (missing := ray_missing()):
+        raise SuiteError(missing)
+    if executor is Executor.LOCAL and args.ray_address:
+        raise SuiteError("--ray-address: only with --executor ray")
     specs = suite.runs(only)
     report = Path(args.report or Path("test-reports") / Path(args.suite).stem).resolve()
     report.mkdir(parents=True, exist_ok=True)
+    at_a_time = str(args.jobs or (1 if executor is Executor.LOCAL else "the cluster's CPUs"))
+    cases = len({s.case for s in specs})
     print(
-        f"{suite.name}: {len(specs)} runs of {len({s.case for s in specs})} cases, {args.jobs} at a time",
+        f"{suite.name}: {len(specs)} runs of {cases} cases, {at_a_time} at a time ({executor.value})",
         file=sys.stderr,
     )
     t0 = time.perf_counter()
-    results = _run_all(specs, report, args.jobs)
+    interrupted, jobs = False, args.jobs or 1
+    if executor is Executor.RAY:
+
+        def progress(r: RunResult, done: int) -> None:
+            print(progress_line(r, done, len(specs)), file=sys.stderr, flush=True)
+
+        outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress)
+        results, interrupted, jobs = outcome.results, outcome.interrupted, outcome.jobs
+    else:
+        results = _run_all(specs, report, jobs)
     wall_s = time.perf_counter() - t0
-    doc = suite_json(suite.name, results, wall_s, args.jobs)
+    doc = suite_json(suite.name, results, wall_s, jobs)
     write_json(report / "suite.json", doc)
     if args.junit:
         write_atomic(args.junit, junit_xml(suite.name, results, wall_s))
     print(json.dumps(doc, indent=2) if args.json else summary_table(suite.name, results, wall_s))
+    if interrupted:
+        done = f"{len(results)} of {len(specs)} runs finished"
+        print(f"interrupted: {done}, the cluster's tasks cancelled", file=sys.stderr)
+        return 130
     return 0 if all(r.met for r in results) else 1
 
 
@@ -74,7 +99,16 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     """Register `test` on the `palletpilot` sub-command parser."""
     p = subparsers.add_parser("test", help="run a mission test suite (SUITE.yaml) in the simulator")
     p.add_argument("suite", metavar="SUITE.yaml", help="the suite file (cases, expectations, checks)")
-    p.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes (default 1)")
+    p.add_argument(
+        "--jobs", type=count(1, 256), help="runs at a time (local: worker processes, default 1; ray: default all CPUs)"
+    )
+    p.add_argument(
+        "--executor",
+        choices=[e.value for e in Executor],
+        default=Executor.LOCAL.value,
+        help="local worker processes (default) or Ray tasks (pip install 'palletpilot[cluster]')",
+    )
+    p.add_argument("--ray-address", metavar="ADDR", help="with --executor ray: ray://HOST:10001, auto or HOST:PORT")
     p.add_argument("--junit", type=out_file(".xml"), metavar="FILE.xml", help="write JUnit XML")
     p.add_argument("--report", type=out_folder, metavar="DIR", help="report folder (default test-reports/SUITE)")
     p.add_argument("--only", metavar="NAME[,NAME]", help="run only these cases")

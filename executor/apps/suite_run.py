@@ -56,6 +56,7 @@ class RunResult:
     wall_s: float = 0.0
     report_dir: str | None = None
     drawn: dict[str, Any] = field(default_factory=dict)
+    retried: bool = False  # its worker died (node lost, out of memory) and it ran again (`--executor ray`)
 
     def to_json(self) -> dict[str, Any]:
         """The result as plain JSON types."""

@@ -9,6 +9,7 @@ from badinputs.files import MISSION, SCENARIO, world
 
 RUN = ("run", "{ex}/" + MISSION, "--quiet")
 RENDER = ("sim", "render", "{ex}/" + SCENARIO)
+TEST = ("test", "{ex}/suite/suite.yaml", "--report", "{case}/reports")
 SEED_MAX = str(2**64 - 1)
 
 
@@ -317,4 +318,7 @@ CASES += [
         2,
         "perception service unavailable",
     ),
+    Case("opt_test_executor_unknown", (*TEST, "--executor", "dask"), 2, "--executor: invalid choice: 'dask'"),
+    Case("opt_test_ray_address_local", (*TEST, "--ray-address", "auto"), 2, "--ray-address: only with --executor ray"),
+    Case("opt_test_jobs_0", (*TEST, "--jobs", "0"), 2, "--jobs: must be an integer in 1..256, got '0'"),
 ]
