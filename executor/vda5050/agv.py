@@ -14,13 +14,16 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 - `pick`: at the pallet node's pre-pallet node, the adaptive Pickup (`loadType` -> pallet type, `height`):
   the action is INITIALIZING while it calibrates and estimates (and re-plans), RUNNING from entering the
   pallet, FINISHED once the load is lifted; the pallet node is traversed when the forks are in, the
-  pre-pallet node when the truck has backed out. Backing out waits (the runner held as in a pause) until
-  that edge is released. A failed Pickup: FAILED with the reason in an error (`palletNotFound`, ...).
+  pre-pallet node when the truck has backed out. Backing out waits (the runner held as in a pause, the
+  scanners' narrow set muting the load ahead of the forks) until that edge is released. A failed Pickup:
+  FAILED with the reason in an error (`palletNotFound`, ...).
 - `drop`: the checked Delivery likewise (RUNNING from entering the slot, FINISHED once lowered).
 - `actions`: node actions of the current node (`startCharging`, `stopCharging`).
 
-After a failure the truck stays stopped and takes no further leg until the master cancels the order or
-sends a new one. Connection loss changes nothing here: the truck goes on up to the last released node.
+An error in this AGV's own code (not a task's failure) stops the truck and halts the order with a FATAL
+`internalError`; the executor thread goes on. After a failure the truck stays stopped and takes no further
+leg until the master cancels the order or sends a new one. Connection loss changes nothing here: the
+truck goes on up to the last released node.
 
 Instant actions: `instant.AgvInstantActions` (a base of `Agv`) runs them on the network thread.
 
@@ -51,7 +54,7 @@ from typing import TYPE_CHECKING, Any
 
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.controls import Controls
-from palletpilot.executor.errors import CANCELLED
+from palletpilot.executor.errors import CANCELLED, INTERNAL_ERROR
 from palletpilot.executor.mission import Mission
 from palletpilot.executor.ports import LocalPerception, VehiclePort
 from palletpilot.executor.results import TaskResult
@@ -180,6 +183,8 @@ class Agv(AgvInstantActions, AgvJournal):
         self._pause_action: str | None = None
         self._cancel_action: str | None = None
         self._last_node: tuple[str, int] = ("", 0)
+        self._in_slot = False
+        """A pick or drop leg waits with the forks in the slot for the back-out's release."""
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.persister: Persister | None = None
@@ -328,14 +333,40 @@ class Agv(AgvInstantActions, AgvJournal):
         self.heading = self._axis_heading(start) if start else self.snapshot.theta
         while not self._stop.is_set():
             leg = None
-            if self.halted is None and not self.controls.master_pause and self._cancel_action is None:
-                leg = self.orders.plan_next()
-            if leg is None:
-                self.vehicle.stop()
-                self.backend.clock.tick()
-                continue
-            self._leg(leg)
+            try:
+                if self.halted is None and not self.controls.master_pause and self._cancel_action is None:
+                    leg = self.orders.plan_next()
+                if leg is None:
+                    self.vehicle.stop()
+                    self.backend.clock.tick()
+                    continue
+                self._leg(leg)
+            except Exception as exc:  # never an exit: the truck stops and the master hears why
+                self._internal_failure(leg, exc)
             self.changed()
+
+    def _internal_failure(self, leg: Leg | None, exc: Exception) -> None:
+        """A bug in this AGV's own code (not the runner's, which fails its task): stop the truck, drop the
+        leg, halt until the master sends an order (or cancels), and report a FATAL `internalError`."""
+        import traceback
+
+        with contextlib.suppress(Exception):
+            self.vehicle.stop()
+        self.runner, self.leg, self.halted = None, None, INTERNAL_ERROR
+        self.controls.gate = None
+        self.controls.refresh()
+        where = f" in a {leg.kind} leg" if leg is not None else ""
+        why = f"{type(exc).__name__}{where}: {exc}"
+        self.log(f"agv: internal error{where}: {''.join(traceback.format_exception(exc)).rstrip()}")
+        error = AgvError(
+            error_type(INTERNAL_ERROR),
+            reason_level(INTERNAL_ERROR),
+            f"{INTERNAL_ERROR}: {why}"[:500],
+            (("reason", INTERNAL_ERROR),),
+            "the truck stopped; check it, then cancel the order (cancelOrder) and send a new one",
+        )
+        with self.orders.lock:
+            self.orders.errors.append(error)
 
     def _leg(self, leg: Leg) -> None:
         o = self.orders
@@ -356,11 +387,12 @@ class Agv(AgvInstantActions, AgvJournal):
             load_type = action.param("loadType")
             if isinstance(load_type, str) and pallet_name(load_type):
                 pallet = str(pallet_name(load_type))
-            self._set(action.action_id, A.INITIALIZING)
+            self._set(action, A.INITIALIZING)
         mission = Mission.model_validate(
             {"name": f"vda5050 {o.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet, "tasks": [task]}
         )
         self.log(f"agv: {leg.kind} {' -> '.join(leg.route)}")
+        node_ref = [("node.nodeId", o.nodes[leg.index].node_id)] if leg.index < len(o.nodes) else []
         line: dict[str, Any] = {
             "order_id": o.order_id,
             "order_update_id": o.order_update_id,
@@ -415,15 +447,16 @@ class Agv(AgvInstantActions, AgvJournal):
             elif action is not None:
                 if leg.kind == "pick":
                     self._carried_type = pallet
-                self._set(action.action_id, A.FINISHED)
+                self._set(action, A.FINISHED)
             return
         reason = (result.reason if result else None) or "internal_error"
         message = (result.message if result else None) or reason
         if reason == CANCELLED and (self._cancel_action is not None or self._stop.is_set()):
             return
         self.halted = reason
-        refs: list[tuple[str, str]] = [("node.nodeId", o.nodes[leg.index].node_id)] if leg.index < len(o.nodes) else []
-        if action is not None:
+        refs: list[tuple[str, str]] = list(node_ref)  # the leg's order node (a new order may have come since)
+        record = o.actions.record_of(action) if action is not None else None
+        if action is not None and record is not None:
             refs += [("actionId", action.action_id), ("actionType", action.action_type)]
         error = AgvError(
             error_type(reason),
@@ -432,7 +465,7 @@ class Agv(AgvInstantActions, AgvJournal):
             (*refs, ("reason", reason)),
             "the truck stopped; cancel the order (cancelOrder) and send a new one",
         )
-        if action is not None and not o.actions.get(action.action_id).final:
+        if action is not None and record is not None and not record.final:
             o.fail_action(action.action_id, error, f"{reason}: {message}")
         else:
             with o.lock:
@@ -463,15 +496,18 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.roadmap.remove_edge(old.start, old.end)
                 self.roadmap.add_edge(old)
 
-    def _set(self, action_id: str, status: ActionStatus) -> None:
-        """Move an order action on; while it is PAUSED the new status waits for the resume."""
+    def _set(self, action: Action, status: ActionStatus) -> None:
+        """Move an order action on; while it is PAUSED the new status waits for the resume. Nothing when its
+        order's action states are gone (a new order came while the leg ran)."""
+        record = self.orders.actions.record_of(action)
+        if record is None:
+            return
         try:
-            record = self.orders.actions.get(action_id)
             if record.status is A.PAUSED and status in (A.INITIALIZING, A.RUNNING):
                 record.resume_to = status
             elif not record.final:
-                self.orders.actions.set(action_id, status)
-        except (KeyError, IllegalTransitionError) as exc:
+                self.orders.actions.set(action.action_id, status)
+        except IllegalTransitionError as exc:
             self.log(f"agv: {exc}")
         self.changed()
 
@@ -484,9 +520,10 @@ class Agv(AgvInstantActions, AgvJournal):
         state = data.get("state")
         if event == "state_start":
             if state == "enter":
-                self._set(a.action_id, A.RUNNING)
+                self._set(a, A.RUNNING)
             elif state == "reverse_out" and not self.orders.can_enter(pre):
                 self._gate(pre)
+                self._in_slot = True
             elif state == "return_to_roadmap":
                 ctx = runner.ctx
                 if ctx.node_before and ctx.pre_node and self.roadmap.node(ctx.pre_node).temporary:
@@ -516,7 +553,7 @@ class Agv(AgvInstantActions, AgvJournal):
             self.load = load
         else:
             self.load = None
-        self._set(a.action_id, A.FINISHED)
+        self._set(a, A.FINISHED)
 
     def _gate(self, node: str) -> None:
         self.controls.gate = node
@@ -575,6 +612,12 @@ class Agv(AgvInstantActions, AgvJournal):
             self.controls.gate = None
             self.controls.refresh()
             changed = True
+        if self._in_slot and (snap.speed < -0.02 or leg is None):
+            self._in_slot = False  # backing out: the scanners watch behind the truck (any field set)
+        elif self._in_slot:
+            # standing in the slot (the back-out waited for its release): the normal forward fields would see
+            # the load just handled ahead of the forks and hold the truck for good; the narrow set mutes it
+            self.vehicle.set_safety_field_set("narrow")
         if self._pause_action is not None and not snap.driving:
             self._finish(self._pause_action)
             self._pause_action, changed = None, True

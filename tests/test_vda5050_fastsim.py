@@ -1,0 +1,171 @@
+"""The AGV in this process on the simulated warehouse in simulated time (a `SimClock` steps the simulator as
+fast as the CPU allows, some 40x real time), the master's messages handed to `Agv.on_message` at chosen
+simulated times from the executor thread itself, so a scenario runs the same every time (`FastAgv`,
+`fast_agv`; tests/test_vda5050_random.py uses them too).
+
+- The crash of issue 39: a pick-and-drop order ending at `drop`, then a new order from `drop` (as openTCS
+  sends from a destination point) while the truck still waits in the slot for its back-out: the back-out
+  runs (the load just dropped does not hold it), the new order's route follows, the process lives.
+- An exception in the AGV's own code: the truck stops, a FATAL internalError, the executor goes on."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from test_vda5050_mqtt import MISSIONS, action, make_order, write_config
+
+from palletpilot.executor.clock import SimClock
+from palletpilot.executor.vda5050 import validation
+from palletpilot.executor.vda5050.agv import Agv
+from palletpilot.executor.vda5050.config import load_config
+from palletpilot.executor.vda5050.vehicle import TickClock, sim_backend
+
+SCENARIO = """\
+map: {map}
+forks: {forks}
+seed: {seed}
+start: {start}
+pallets:
+  - {{node: floor_a3}}
+  - {{node: floor_b2}}
+"""
+HEAD = {"version": "2.1.0", "manufacturer": "palletpilot", "serialNumber": "0001"}
+PICK_DROP = ["a2", "a3", "floor_a3_pre", "floor_a3", "floor_a3_pre", "a3", "a_bot", "c_w", "j_charge", "j_drop"]
+
+
+@dataclass
+class FastAgv:
+    """An `Agv` on a simulated clock; `at(t, fn)` runs `fn` on the executor thread at simulated time t (s)."""
+
+    agv: Agv
+    lines: list[str]
+    schedule: list[tuple[float, Callable[[], None]]] = field(default_factory=list)
+    checks: list[Callable[[], None]] = field(default_factory=list)
+    header_id: int = 0
+    failure: BaseException | None = None
+
+    def now(self) -> float:
+        """Simulated seconds."""
+        return self.agv.backend.clock.now()
+
+    def at(self, t: float, fn: Callable[[], None]) -> None:
+        self.schedule.append((t, fn))
+        self.schedule.sort(key=lambda item: item[0])
+
+    def send(self, topic: str, doc: dict[str, Any]) -> None:
+        """Hand a message to the AGV as the network thread would (a fresh header)."""
+        self.header_id += 1
+        head = {"headerId": self.header_id, "timestamp": validation.Stamper()(), **HEAD}
+        self.agv.on_message(topic, json.dumps({**head, **doc}).encode())
+
+    def tick(self) -> None:
+        """The clock hook: the AGV's own sampling, then what is due, then the checks."""
+        self.agv._on_tick()
+        try:
+            while self.schedule and self.schedule[0][0] <= self.now():
+                self.schedule.pop(0)[1]()
+            for check in self.checks:
+                check()
+        except Exception as exc:  # the test's own failure: reported, not handed to the runner
+            self.failure = self.failure or exc
+
+    def run_until(self, done: Callable[[], bool], wall_s: float) -> None:
+        """Run the executor thread until `done()` (polled) or `wall_s` of wall time, then stop it."""
+        thread = threading.Thread(target=self._run, daemon=True)
+        thread.start()
+        deadline = time.monotonic() + wall_s
+        try:
+            while thread.is_alive() and self.failure is None and not done() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert thread.is_alive(), f"the executor thread ended: {self.failure!r}"
+        finally:
+            self.agv.stop()
+            thread.join(timeout=30)
+            self.agv.backend.close()
+        if self.failure is not None:
+            raise self.failure
+
+    def _run(self) -> None:
+        try:
+            self.agv.run()
+        except BaseException as exc:  # the test reports it
+            self.failure = exc
+
+
+def fast_agv(tmp_path: Path, seed: int = 11, start: str = "a2") -> FastAgv:
+    """The AGV on missions/warehouse.yaml with pallets at floor_a3 and floor_b2, simulator labels, a simulated
+    clock and no MPC wall-clock deadline (a loaded CI machine must not fail a leg)."""
+    loaded = load_config(write_config(tmp_path, 1883))  # never connected
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text(
+        SCENARIO.format(map=MISSIONS / "warehouse.yaml", forks=MISSIONS / "forks.yaml", seed=seed, start=start)
+    )
+    backend = sim_backend(loaded, scenario, labels="truth")
+    wall = backend.clock.inner
+    backend.clock = TickClock(SimClock(wall._step, dt=wall.dt), now=backend.clock._now)  # type: ignore[attr-defined]
+    backend.follower.mpc.solve_deadline_s = None  # type: ignore[attr-defined]
+    lines: list[str] = []
+    fast = FastAgv(Agv(loaded, backend, log=lines.append), lines)
+    backend.clock.hook = fast.tick
+    return fast
+
+
+def state_problems(fast: FastAgv) -> list[str]:
+    return validation.problems("state", fast.agv.state_message())
+
+
+# -- the crash of issue 39 -----------------------------------------------------------------------------------
+
+
+def test_a_new_order_from_the_drop_node_while_the_truck_waits_in_the_slot(tmp_path: Path) -> None:
+    fast = fast_agv(tmp_path)
+    agv = fast.agv
+    pick = action("pick", "pick1", "HARD", loadType="EPAL", stationType="floor", loadId="L-0042")
+    drop = action("drop", "drop1", "HARD")
+    path = [*PICK_DROP, "drop_pre", "drop"]  # the order ends at the drop node: no back-out released
+    fast.at(1.0, lambda: fast.send("order", make_order("m1", path, actions={3: [pick], 11: [drop]})))
+    sent: list[float] = []
+
+    def waiting_in_the_slot() -> None:
+        s = agv.state_message()
+        if not sent and s["lastNodeId"] == "drop" and not s["nodeStates"] and agv.controls.gate == "drop_pre":
+            assert [a["actionStatus"] for a in s["actionStates"]] == ["FINISHED", "FINISHED"]
+            sent.append(fast.now())
+            fast.send("order", make_order("m2", ["drop", "drop_pre", "j_drop"]))  # drop1 goes with it
+
+    fast.checks.append(waiting_in_the_slot)
+    fast.run_until(lambda: bool(sent) and agv.runner is None and agv.state_message()["lastNodeId"] == "j_drop", 40)
+    s = agv.state_message()
+    assert sent and s["orderId"] == "m2" and s["lastNodeId"] == "j_drop" and not s["nodeStates"], "\n".join(
+        [*fast.lines[-6:], json.dumps(s)]
+    )
+    assert s["errors"] == [] and agv.halted is None, s["errors"]
+    assert [leg["ok"] for leg in agv.legs] == [True, True, True, True, True], agv.legs
+    assert agv.legs[3]["kind"] == "drop" and agv.legs[3]["end_s"] - sent[0] < 15.0  # no 30 s path_blocked
+
+
+def test_an_error_in_the_agv_s_own_code_stops_the_truck_and_is_reported(tmp_path: Path) -> None:
+    fast = fast_agv(tmp_path, start="b_bot")
+    agv = fast.agv
+    real = agv._speed_limits
+
+    def broken(leg: Any) -> Any:
+        if len(agv.legs) == 1:  # the second leg
+            raise RuntimeError("a bug")
+        return real(leg)
+
+    agv._speed_limits = broken  # type: ignore[method-assign]
+    fast.at(1.0, lambda: fast.send("order", make_order("o1", ["b_bot", "b1"])))
+    fast.at(20.0, lambda: fast.send("order", make_order("o2", ["b1", "b2"])))
+    fast.run_until(lambda: fast.now() > 40.0, 60)
+    s = agv.state_message()
+    assert [e["errorType"] for e in s["errors"]] == ["internalError"], s["errors"]
+    assert s["errors"][0]["errorLevel"] == "FATAL" and "RuntimeError" in s["errors"][0]["errorDescription"]
+    assert agv.halted == "internal_error" and not s["driving"] and state_problems(fast) == []
+    assert s["lastNodeId"] == "b1"  # the first order ran; the second's leg never started
