@@ -169,3 +169,34 @@ def test_an_error_in_the_agv_s_own_code_stops_the_truck_and_is_reported(tmp_path
     assert s["errors"][0]["errorLevel"] == "FATAL" and "RuntimeError" in s["errors"][0]["errorDescription"]
     assert agv.halted == "internal_error" and not s["driving"] and state_problems(fast) == []
     assert s["lastNodeId"] == "b1"  # the first order ran; the second's leg never started
+
+
+# -- pick and drop run at their node --------------------------------------------------------------------------
+
+
+def test_pick_and_drop_wait_until_their_node_is_reached(tmp_path: Path) -> None:
+    """Section 6.11 (table 2) and 6.10.2: a node action is WAITING until its node is reached. The adaptive
+    approach (calibrate, estimate, re-plan, enter) is the traversal of the order's last edge; the pick runs at
+    the pallet node with the truck standing, the drop likewise at the drop node."""
+    fast = fast_agv(tmp_path)
+    agv = fast.agv
+    pick = action("pick", "pick1", "HARD", loadType="EPAL", stationType="floor", loadId="L-0042")
+    drop = action("drop", "drop1", "HARD")
+    path = [*PICK_DROP, "drop_pre", "drop", "drop_pre"]
+    fast.at(1.0, lambda: fast.send("order", make_order("m1", path, actions={3: [pick], 11: [drop]})))
+    seen: list[tuple[str | None, str | None, str, bool]] = []
+
+    def record() -> None:
+        s = agv.state_message()
+        statuses = {a["actionId"]: a["actionStatus"] for a in s["actionStates"]}
+        seen.append((statuses.get("pick1"), statuses.get("drop1"), s["lastNodeId"], s["driving"]))
+
+    fast.checks.append(record)
+    fast.run_until(lambda: bool(seen) and seen[-1][1] == "FINISHED" and seen[-1][2] == "drop_pre", 60)
+    for name, index, node in (("pick1", 0, "floor_a3"), ("drop1", 1, "drop")):
+        statuses = [row[index] or "" for row in seen]  # "" before the order
+        assert "INITIALIZING" not in statuses and statuses[-1] == "FINISHED", (name, sorted(set(statuses)))
+        reached = next(i for i, row in enumerate(seen) if row[2] == node)
+        assert set(statuses[:reached]) - {""} == {"WAITING"}, (name, sorted(set(statuses[:reached])))
+        running = [row for row in seen if row[index] == "RUNNING"]
+        assert running and all(row[2] == node and not row[3] for row in running), (name, running[:3])

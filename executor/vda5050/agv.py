@@ -11,13 +11,14 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 - `move`: a Move task to the leg's last node along exactly the order's edges (`OrderPlanner` hands the
   runner the order's route); nodes on the way count as traversed when the truck passes within their
   deviation range, the last one when the truck stands there. Edges with `maxSpeed` are slowed for the leg.
-- `pick`: at the pallet node's pre-pallet node, the adaptive Pickup (`loadType` -> pallet type, `height`):
-  the action is INITIALIZING while it calibrates and estimates (and re-plans), RUNNING from entering the
-  pallet, FINISHED once the load is lifted; the pallet node is traversed when the forks are in, the
-  pre-pallet node when the truck has backed out. Backing out waits (the runner held as in a pause, the
-  scanners' narrow set muting the load ahead of the forks) until that edge is released. A failed Pickup:
-  FAILED with the reason in an error (`palletNotFound`, ...).
-- `drop`: the checked Delivery likewise (RUNNING from entering the slot, FINISHED once lowered).
+- `pick`: at the pallet node's pre-pallet node, the adaptive Pickup (`loadType` -> pallet type, `height`).
+  Its approach (calibrate, estimate, re-plan, enter) is the traversal of the order's last edge: the action
+  stays WAITING (section 6.11, table 2; node actions start at their node, 6.10.2) until the forks are in
+  and the pallet node is traversed, then RUNNING while the truck stands and lifts, FINISHED once the load
+  is lifted; the pre-pallet node is traversed when the truck has backed out. Backing out waits (the runner
+  held as in a pause, the scanners' narrow set muting the load ahead of the forks) until that edge is
+  released. A failed Pickup: FAILED with the reason in an error (`palletNotFound`, ...).
+- `drop`: the checked Delivery likewise (WAITING until the forks are in the slot, RUNNING while lowering).
 - `actions`: node actions of the current node (`startCharging`, `stopCharging`).
 
 An error in this AGV's own code (not a task's failure) stops the truck and halts the order with a FATAL
@@ -45,15 +46,13 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import itertools
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from palletpilot.executor.behaviour import Settings
-from palletpilot.executor.controls import Controls
 from palletpilot.executor.errors import CANCELLED, INTERNAL_ERROR
 from palletpilot.executor.mission import Mission
 from palletpilot.executor.ports import LocalPerception, VehiclePort
@@ -63,6 +62,7 @@ from palletpilot.executor.vda5050 import validation
 from palletpilot.executor.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.executor.vda5050.instant import AgvInstantActions
+from palletpilot.executor.vda5050.legs import AgvControls, OrderPlanner, speed_limits
 from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError
 from palletpilot.executor.vda5050.mqtt import AgvLink
 from palletpilot.executor.vda5050.orders import Leg, OrderManager, VehicleView
@@ -74,47 +74,11 @@ from palletpilot.executor.vda5050.validation import Headers
 from palletpilot.executor.vda5050.vehicle import Backend
 from palletpilot.geometry import angle_diff
 from palletpilot.perception.specs import builtin_pallet
-from palletpilot.roadmap import Planner, Roadmap, Route
 
 if TYPE_CHECKING:
     from palletpilot.executor.recording import Recorder
 
 A = ActionStatus
-
-
-class AgvControls(Controls):
-    """The runner's controls: paused while the master paused the truck or a leg waits for a release."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.master_pause = False
-        self.gate: str | None = None
-        """A roadmap node the running leg waits to be allowed to enter."""
-
-    def refresh(self) -> None:
-        """Recompute `paused` from the master's pause and the gate."""
-        self.paused = self.master_pause or self.gate is not None
-
-    def reset(self) -> None:
-        """Clear a cancel and the gate; the master's pause stays."""
-        super().reset()
-        self.gate = None
-        self.refresh()
-
-
-class OrderPlanner(Planner):
-    """A planner that answers the leg's route with exactly the order's edges (and plans anything else)."""
-
-    def __init__(self, roadmap: Roadmap, route: tuple[str, ...]) -> None:
-        super().__init__(roadmap)
-        self.route = route
-
-    def plan(self, start: str, goal: str, start_yaw: float | None = None, goal_yaw: float | None = None) -> Route:
-        """The order's route from its first to its last node; other requests go to the roadmap planner."""
-        r = self.route
-        if len(r) >= 2 and start == r[0] and goal == r[-1]:
-            return Route(list(r), [self.roadmap.edge(a, b) for a, b in itertools.pairwise(r)])
-        return super().plan(start, goal, start_yaw=start_yaw, goal_yaw=goal_yaw)
 
 
 class Agv(AgvInstantActions, AgvJournal):
@@ -387,7 +351,6 @@ class Agv(AgvInstantActions, AgvJournal):
             load_type = action.param("loadType")
             if isinstance(load_type, str) and pallet_name(load_type):
                 pallet = str(pallet_name(load_type))
-            self._set(action, A.INITIALIZING)
         mission = Mission.model_validate(
             {"name": f"vda5050 {o.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet, "tasks": [task]}
         )
@@ -472,29 +435,9 @@ class Agv(AgvInstantActions, AgvJournal):
                 o.errors.append(error)
         self.log(f"agv: {leg.kind} failed: {reason}: {message}")
 
-    @contextlib.contextmanager
-    def _speed_limits(self, leg: Leg) -> Iterator[None]:
-        """Slow the roadmap edges of a move leg to the order's `maxSpeed` for the leg, then restore them."""
-        import dataclasses
-
-        o, replaced = self.orders, []
-        if leg.kind == "move":
-            with o.lock:
-                first = o.cursor - 1
-                edges = o.edges[first : first + len(leg.route) - 1]
-            for (a, b), e in zip(zip(leg.route, leg.route[1:], strict=False), edges, strict=False):
-                limit = e.raw.get("maxSpeed")
-                old = self.roadmap.edge(a, b)
-                if limit is not None and float(limit) < old.speed_limit:
-                    self.roadmap.remove_edge(a, b)
-                    self.roadmap.add_edge(dataclasses.replace(old, speed_limit=float(limit)))
-                    replaced.append(old)
-        try:
-            yield
-        finally:
-            for old in replaced:
-                self.roadmap.remove_edge(old.start, old.end)
-                self.roadmap.add_edge(old)
+    def _speed_limits(self, leg: Leg) -> contextlib.AbstractContextManager[None]:
+        """The order's `maxSpeed` on the leg's roadmap edges while it runs (`legs.speed_limits`)."""
+        return speed_limits(self.orders, self.roadmap, leg)
 
     def _set(self, action: Action, status: ActionStatus) -> None:
         """Move an order action on; while it is PAUSED the new status waits for the resume. Nothing when its
@@ -519,9 +462,7 @@ class Agv(AgvInstantActions, AgvJournal):
         a, pre, node = leg.actions[0], leg.route[0], leg.route[-1]
         state = data.get("state")
         if event == "state_start":
-            if state == "enter":
-                self._set(a, A.RUNNING)
-            elif state == "reverse_out" and not self.orders.can_enter(pre):
+            if state == "reverse_out" and not self.orders.can_enter(pre):
                 self._gate(pre)
                 self._in_slot = True
             elif state == "return_to_roadmap":
@@ -530,8 +471,9 @@ class Agv(AgvInstantActions, AgvJournal):
                     if not self.orders.can_enter(ctx.node_before):
                         self._gate(ctx.node_before)
         elif event == "state_end" and data.get("outcome") == "done":
-            if state == "enter":
+            if state == "enter":  # the node is reached: the action runs there (the truck stands)
                 self.orders.arrive(node)
+                self._set(a, A.RUNNING)
             elif state == ("lift" if leg.kind == "pick" else "lower"):
                 self._handled(a, leg.kind)
             elif state == "reverse_out":
