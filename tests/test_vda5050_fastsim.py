@@ -11,6 +11,7 @@ simulated times from the executor thread itself, so a scenario runs the same eve
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -200,3 +201,98 @@ def test_pick_and_drop_wait_until_their_node_is_reached(tmp_path: Path) -> None:
         assert set(statuses[:reached]) - {""} == {"WAITING"}, (name, sorted(set(statuses[:reached])))
         running = [row for row in seen if row[index] == "RUNNING"]
         assert running and all(row[2] == node and not row[3] for row in running), (name, running[:3])
+
+
+# -- a new order after a cancel part way along an edge (section 6.6.3.1) ------------------------------------
+
+
+def position(x: float, y: float, deviation: float = 0.0) -> dict[str, Any]:
+    out: dict[str, Any] = {"x": x, "y": y, "mapId": "warehouse"}
+    if deviation:
+        out["allowedDeviationXY"] = deviation
+    return out
+
+
+def cancel_then(tmp_path: Path, start: str, path: list[str], when: Callable[[dict[str, Any]], bool], restart: Any):
+    """Drive `path`, cancel when `when(state)`, then once the truck stands send `restart(state)` (an order);
+    returns the AGV, its log and the states (dicts) seen after the restart order."""
+    fast = fast_agv(tmp_path, start=start)
+    agv = fast.agv
+    fast.at(1.0, lambda: fast.send("order", make_order("c1", path)))
+    phase: list[str] = []
+    after: list[dict[str, Any]] = []
+
+    def follow() -> None:
+        s = agv.state_message()
+        if not phase and s["orderId"] == "c1" and when(s):
+            phase.append("cancel")
+            fast.send("instantActions", {"actions": [action("cancelOrder", "cancel1")]})
+        elif phase == ["cancel"] and not s["driving"] and agv.runner is None and agv._cancel_action is None:
+            phase.append("restart")
+            fast.send("order", restart(s))
+        elif len(phase) == 2:
+            after.append(s)
+
+    fast.checks.append(follow)
+    fast.run_until(lambda: len(after) > 5 and after[-1]["orderId"] == "c2" and not after[-1]["nodeStates"], 60)
+    return agv, fast.lines, after
+
+
+def test_restart_after_a_cancel_on_a_straight_edge_from_the_last_node_passed(tmp_path: Path) -> None:
+    def restart(s: dict[str, Any]) -> dict[str, Any]:
+        assert s["lastNodeId"] == "b1" and 6.0 < s["agvPosition"]["y"] < 8.5, s["agvPosition"]
+        order = make_order("c2", ["b1", "b2", "b3"])
+        order["nodes"][0]["nodePosition"] = position(20.0, 5.0, deviation=4.0)  # the truck is within 4 m of b1
+        return order
+
+    agv, lines, after = cancel_then(
+        tmp_path, "b_bot", ["b_bot", "b1", "b2", "b3"], lambda s: s["agvPosition"]["y"] > 6.5, restart
+    )
+    assert "agv: order c2/0 accepted (new)" in lines, lines[-5:]
+    assert after[-1]["lastNodeId"] == "b3" and after[-1]["errors"] == [], after[-1]["errors"]
+    assert abs(after[-1]["agvPosition"]["y"] - 13.0) < 0.3 and [leg["ok"] for leg in agv.legs][-1]
+
+
+def test_restart_after_a_cancel_on_a_straight_edge_from_a_temporary_node(tmp_path: Path) -> None:
+    def restart(s: dict[str, Any]) -> dict[str, Any]:
+        order = make_order("c2", ["here", "b2", "b3"])
+        p = s["agvPosition"]
+        order["nodes"][0]["nodePosition"] = position(p["x"], p["y"])  # where the truck stands
+        order["edges"][0]["startNodeId"] = "here"
+        return order
+
+    agv, lines, after = cancel_then(
+        tmp_path, "b_bot", ["b_bot", "b1", "b2", "b3"], lambda s: s["agvPosition"]["y"] > 6.5, restart
+    )
+    assert "agv: order c2/0 accepted (new)" in lines, lines[-5:]
+    assert after[0]["lastNodeId"] == "here" and after[-1]["lastNodeId"] == "b3" and after[-1]["errors"] == []
+    assert agv.legs[-1]["ok"] and agv.legs[-1]["route"] == ["b1", "b2", "b3"]  # from b1's edge, part way
+
+
+def test_restart_after_a_cancel_on_a_curve_from_the_last_node_passed(tmp_path: Path) -> None:
+    """a_bot -> c_w is an arc of radius 3 m: cancelled on it, the order from a_bot (its deviation range reaching
+    the truck, as a master sets it) drives on along the arc from where the truck stands, no controllerError."""
+
+    def restart(s: dict[str, Any]) -> dict[str, Any]:
+        p = s["agvPosition"]
+        off = math.hypot(p["x"] - 6.0, p["y"] - 3.0)
+        assert s["lastNodeId"] == "a_bot" and 0.5 < off < 3.5 and p["y"] > 0.2, (p, s["lastNodeId"])  # on the arc
+        order = make_order("c2", ["a_bot", "c_w", "j_charge"])
+        order["nodes"][0]["nodePosition"] = position(6.0, 3.0, deviation=off + 0.3)
+        return order
+
+    agv, lines, after = cancel_then(
+        tmp_path, "a3", ["a3", "a_bot", "c_w", "j_charge"], lambda s: s["agvPosition"]["x"] > 6.6, restart
+    )
+    assert "agv: order c2/0 accepted (new)" in lines, lines[-5:]
+    assert after[-1]["lastNodeId"] == "j_charge" and after[-1]["errors"] == [], after[-1]["errors"]
+    assert abs(after[-1]["agvPosition"]["x"] - 11.0) < 0.3 and agv.legs[-1]["ok"]
+
+
+def test_an_order_far_away_is_refused_for_its_distance(tmp_path: Path) -> None:
+    fast = fast_agv(tmp_path, start="b_bot")
+    fast.at(1.0, lambda: fast.send("order", make_order("far", ["a2", "a3"])))  # 22 m away, heading the other way
+    fast.run_until(lambda: fast.now() > 3.0, 30)
+    errors = fast.agv.state_message()["errors"]
+    assert len(errors) == 1 and errors[0]["errorType"] == "noRouteError", errors
+    assert "m from the truck" in errors[0]["errorDescription"] and "heading" not in errors[0]["errorDescription"]

@@ -7,6 +7,7 @@ after every failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPIL
 
 from __future__ import annotations
 
+import math
 import os
 import random
 import time
@@ -30,6 +31,7 @@ class RandomMaster:
         ("update", 5),
         ("stale", 1),
         ("elsewhere", 1),
+        ("restart", 3),
         ("cancel", 3),
         ("pause", 1),
         ("resume", 3),
@@ -83,13 +85,30 @@ class RandomMaster:
                 loaded = kind == "pick"
         return out
 
-    def order(self, order_id: str, path: list[str], update: int, seq0: int) -> None:
+    def order(
+        self, order_id: str, path: list[str], update: int, seq0: int, first: dict[str, Any] | None = None
+    ) -> None:
+        """Send an order along `path` (its base released at random); `first`: the first node's nodePosition."""
         released = self.rng.choice([None, None, max(1, len(path) - 1), max(1, len(path) // 2)])
         doc = make_order(order_id, path, update, seq0, actions=self.actions_for(path), released=released)
+        if first is not None:
+            doc["nodes"][0]["nodePosition"] = first
         base = [(n["nodeId"], n["sequenceId"]) for n in doc["nodes"] if n["released"]]
         self.order_id, self.update = order_id, update
         self.nodes, self.path = base, path[: len(base)]
         self.fast.send("order", doc)
+
+    def restart(self, s: dict[str, Any], last: str, on_to: str) -> None:
+        """Section 6.6.3.1, either way at random: from lastNodeId with a deviation range reaching the truck, or
+        from a temporary node where it stands; on along the edge it stands on."""
+        p, node = s["agvPosition"], self.roadmap.node(last)
+        rest = self.walk(on_to, self.roadmap.edge(last, on_to).yaw_end, self.rng.randint(0, 4))
+        if self.rng.random() < 0.5:
+            path, pos = [last, *rest], {"x": node.pose.x, "y": node.pose.y}
+            pos["allowedDeviationXY"] = math.hypot(p["x"] - node.pose.x, p["y"] - node.pose.y) + 0.2
+        else:
+            path, pos = [f"here{self.count}", *rest], {"x": p["x"], "y": p["y"]}
+        self.order(f"r{self.count}", path, 0, 0, first={**pos, "mapId": "warehouse"})
 
     def fire(self) -> str:
         """One message; returns its kind."""
@@ -101,6 +120,10 @@ class RandomMaster:
             released = [n for n in s["nodeStates"] if n["released"]]
             start, seq = (released[-1]["nodeId"], released[-1]["sequenceId"]) if released else (None, 0)
             heading = self.heading_at(self.path) if start is not None else agv.heading
+            on = agv.view().on_edge if start is None and agv.leg is None else None
+            if on is not None:  # cancelled part way along an edge
+                self.restart(s, on.start, on.end)
+                return kind
             if start is None:
                 start, seq = s["lastNodeId"] or "a2", s["lastNodeSequenceId"]
             self.order(f"r{self.count}", self.walk(start, heading, self.rng.randint(1, 6)), 0, seq)
@@ -110,6 +133,8 @@ class RandomMaster:
             self.order(self.order_id, path, self.update + 1, seq)
         elif kind == "stale" and self.nodes:
             self.fast.send("order", make_order(self.order_id, [self.nodes[0][0]], max(self.update - 1, 0), 0))
+        elif kind == "restart" and agv.leg is None and (on := agv.view().on_edge) is not None:
+            self.restart(s, on.start, on.end)
         elif kind == "elsewhere":
             start = self.rng.choice([n.id for n in self.roadmap.nodes() if not n.temporary])
             self.order(f"r{self.count}", self.walk(start, None, self.rng.randint(0, 3)), 0, 0)

@@ -62,7 +62,8 @@ from palletpilot.executor.vda5050 import validation
 from palletpilot.executor.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.executor.vda5050.instant import AgvInstantActions
-from palletpilot.executor.vda5050.legs import AgvControls, OrderPlanner, speed_limits
+from palletpilot.executor.vda5050.legs import AgvControls, OrderPlanner, from_where_it_stands, speed_limits
+from palletpilot.executor.vda5050.midedge import locate
 from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError
 from palletpilot.executor.vda5050.mqtt import AgvLink
 from palletpilot.executor.vda5050.orders import Leg, OrderManager, VehicleView
@@ -79,6 +80,8 @@ if TYPE_CHECKING:
     from palletpilot.executor.recording import Recorder
 
 A = ActionStatus
+STOPPED_SPEED = 0.01
+"""m/s: a cancelOrder cancels the running leg once the truck is this slow (the runner's service stop)."""
 
 
 class Agv(AgvInstantActions, AgvJournal):
@@ -267,9 +270,14 @@ class Agv(AgvInstantActions, AgvJournal):
             self.messages.headers.version = wanted
 
     def view(self) -> VehicleView:
-        """The truck as the acceptance flow sees it."""
+        """The truck as the acceptance flow sees it (with the roadmap edge it stands on part way, if any)."""
         s = self.snapshot
-        return VehicleView(s.x, s.y, s.theta, self.heading, s.loaded, self.charging, "; ".join(s.faults) or None)
+        on = None
+        if self.leg is None:
+            with contextlib.suppress(KeyError, ValueError, RuntimeError):  # the roadmap changing meanwhile
+                on = locate(self.roadmap, self.orders.last_rm, s.x, s.y, DEFAULT_DEVIATION_XY)
+        fault = "; ".join(s.faults) or None
+        return VehicleView(s.x, s.y, s.theta, self.heading, s.loaded, self.charging, fault, on)
 
     def _order(self, doc: dict[str, Any]) -> None:
         decision = self.orders.receive_order(doc, self.view())
@@ -367,7 +375,8 @@ class Agv(AgvInstantActions, AgvJournal):
         }
         self._note("leg_start", **{k: line[k] for k in ("order_id", "order_update_id", "kind", "route")})
         self.leg = leg
-        with self._speed_limits(leg):
+        s = self.snapshot
+        with self._speed_limits(leg), from_where_it_stands(self.roadmap, leg, s.x, s.y) as route:
             runner = Runner(
                 mission,
                 self.roadmap,
@@ -377,14 +386,14 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.backend.clock,
                 self.backend.params,
                 self.backend.forks,
-                leg.route[0],
+                route[0],
                 settings=self.settings,
                 follower=self.backend.follower,
                 controls=self.controls,
                 listeners=[*self.backend.listeners, self._on_event],
             )
-            runner.ctx.heading = self.heading
-            runner.ctx.planner = OrderPlanner(self.roadmap, leg.route)
+            runner.ctx.heading = self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw
+            runner.ctx.planner = OrderPlanner(self.roadmap, route)
             self.runner = runner
             if self.recorder is not None:
                 self.recorder.attach(runner)
@@ -395,6 +404,9 @@ class Agv(AgvInstantActions, AgvJournal):
                     self.recorder.detach()
         self.runner, self.leg = None, None
         self.heading = runner.ctx.heading
+        near = None if ok else self._nearest_node()
+        if near is not None:  # stopped at a node (cancelled, failed): the heading it stands with there
+            self.heading = self._axis_heading(near)
         self.controls.gate = None
         self.controls.refresh()
         result = runner.results[-1] if runner.results else None
@@ -563,6 +575,9 @@ class Agv(AgvInstantActions, AgvJournal):
         if self._pause_action is not None and not snap.driving:
             self._finish(self._pause_action)
             self._pause_action, changed = None, True
+        if self._cancel_action is not None and self.controls.stopping and abs(snap.speed) < STOPPED_SPEED:
+            self.controls.stopping = False  # standing: the leg ends now (no safety stop at this speed)
+            self.controls.cancel("cancelled by the master (cancelOrder)")
         if self._cancel_action is not None and self.runner is None and not snap.driving:
             self._finish(self._cancel_action)
             self._cancel_action, changed = None, True

@@ -2,7 +2,9 @@
 
 - `startPause` / `stopPause`: the runner's controls pause (a driving truck's pause is RUNNING until it
   stands, then FINISHED; `agv.Agv` finishes it);
-- `cancelOrder`: the order is cancelled and the running leg stopped (RUNNING until the truck stands);
+- `cancelOrder`: the order is cancelled and the running leg stopped (RUNNING until the truck stands): the
+  truck brakes to a standstill as in a pause, then the leg is cancelled (a cancel at speed would be the
+  truck's latched safety stop, and it could never drive again);
 - `startCharging` / `stopCharging`: only at a charging node (within `CHARGER_RADIUS_M`) and standing,
   else FAILED with `chargingError`;
 - `initPosition`: accepted only when it agrees with localization (`INIT_POSITION_XY_M`,
@@ -90,7 +92,8 @@ class AgvInstantActions:
             o.cancel()
             self.halted = None
             self._cancel_action = a.action_id
-            self.controls.cancel("cancelled by the master (cancelOrder)")
+            self.controls.stopping = True  # braked to a standstill first, then the leg is cancelled (`agv.Agv`)
+            self.controls.refresh()
         elif t in ("startCharging", "stopCharging"):
             self._charging(a, t == "startCharging")
         elif t == "initPosition":

@@ -2,7 +2,9 @@
 waits at), the planner that hands the runner exactly the order's edges (`OrderPlanner`), and the order's
 `maxSpeed` on the leg's roadmap edges (`speed_limits`).
 
-Public API: `AgvControls`, `OrderPlanner`, `speed_limits`.
+The route of a leg that starts with the truck part way along its first edge (`from_where_it_stands`).
+
+Public API: `AgvControls`, `OrderPlanner`, `speed_limits`, `from_where_it_stands`, `HERE`.
 """
 
 from __future__ import annotations
@@ -13,27 +15,37 @@ import itertools
 from collections.abc import Iterator
 
 from palletpilot.executor.controls import Controls
+from palletpilot.executor.vda5050.midedge import locate, rest_of
 from palletpilot.executor.vda5050.orders import Leg, OrderManager
+from palletpilot.executor.vda5050.routes import DEFAULT_DEVIATION_XY
 from palletpilot.roadmap import Edge, Planner, Roadmap, Route
+
+HERE = "_here_after_"
+"""The id prefix of the temporary node where a leg starts part way along an edge."""
 
 
 class AgvControls(Controls):
-    """The runner's controls: paused while the master paused the truck or a leg waits for a release."""
+    """The runner's controls: paused while the master paused the truck, a leg waits for a release, or a
+    cancelOrder brings the truck to a standstill before the leg is cancelled (`stopping`: the service brake,
+    never the latched safety stop a cancel at speed would be)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.master_pause = False
         self.gate: str | None = None
         """A roadmap node the running leg waits to be allowed to enter."""
+        self.stopping = False
+        """A cancelOrder waits for the truck to stand before it cancels the leg."""
 
     def refresh(self) -> None:
-        """Recompute `paused` from the master's pause and the gate."""
-        self.paused = self.master_pause or self.gate is not None
+        """Recompute `paused` from the master's pause, the gate and a cancel's stop."""
+        self.paused = self.master_pause or self.gate is not None or self.stopping
 
     def reset(self) -> None:
-        """Clear a cancel and the gate; the master's pause stays."""
+        """Clear a cancel, its stop and the gate; the master's pause stays."""
         super().reset()
         self.gate = None
+        self.stopping = False
         self.refresh()
 
 
@@ -73,3 +85,20 @@ def speed_limits(orders: OrderManager, roadmap: Roadmap, leg: Leg) -> Iterator[N
         for old in replaced:
             roadmap.remove_edge(old.start, old.end)
             roadmap.add_edge(old)
+
+
+@contextlib.contextmanager
+def from_where_it_stands(roadmap: Roadmap, leg: Leg, x: float, y: float) -> Iterator[tuple[str, ...]]:
+    """The leg's route from where the truck at (x, y) (map frame, m) stands: when it stands part way along the
+    route's first edge (an order restarted after a cancel, section 6.6.3.1), a temporary node there and the
+    rest of that edge replace the first node for the leg; else the route as it is."""
+    route = leg.route
+    on = locate(roadmap, route[0], x, y, DEFAULT_DEVIATION_XY) if leg.kind == "move" and len(route) >= 2 else None
+    if on is None or on.end != route[1]:
+        yield route
+        return
+    with roadmap.overlay() as overlay:
+        node, edge = rest_of(roadmap.edge(on.start, on.end), on.s, f"{HERE}{on.start}")
+        overlay.add_node(node)
+        overlay.add_edge(edge)
+        yield (node.id, *route[1:])
