@@ -50,7 +50,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from palletpilot.executor.behaviour import Settings
 from palletpilot.executor.errors import CANCELLED, INTERNAL_ERROR
@@ -62,7 +62,7 @@ from palletpilot.executor.vda5050 import validation
 from palletpilot.executor.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.vda5050.config import Loaded
 from palletpilot.executor.vda5050.instant import AgvInstantActions
-from palletpilot.executor.vda5050.legs import AgvControls, OrderPlanner, from_where_it_stands, speed_limits
+from palletpilot.executor.vda5050.legs import AgvControls, OrderPlanner, SlotFields, from_where_it_stands, speed_limits
 from palletpilot.executor.vda5050.midedge import locate
 from palletpilot.executor.vda5050.models import Action, ActionStatus, AgvError
 from palletpilot.executor.vda5050.mqtt import AgvLink
@@ -104,6 +104,8 @@ class Agv(AgvInstantActions, AgvJournal):
         self.vehicle: VehiclePort = backend.vehicle
         """What the runners drive and the AGV samples (the recorder's pass-through wrapper when recording)."""
         self.grab = backend.grab
+        self._in_slot = False
+        """A pick or drop leg waits with the forks in the slot for the back-out's release (`legs.SlotFields`)."""
         self.results: list[TaskResult] = []
         """Every leg's task results, in order (the session's `/report/run`)."""
         self.legs: list[dict[str, Any]] = []
@@ -119,6 +121,7 @@ class Agv(AgvInstantActions, AgvJournal):
             perception = backend.perception
             if isinstance(perception, LocalPerception) and perception.segmenter is not None:
                 perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
+        self.vehicle = cast(VehiclePort, SlotFields(self.vehicle, lambda: self._in_slot))
         self.orders = OrderManager(loaded.roadmap, cfg.map_name, loaded.vehicle)
         version = hashlib.sha256(loaded.map_path.read_bytes()).hexdigest()[:12]
         headers = Headers(cfg.protocol_version, cfg.manufacturer, cfg.serial_number)
@@ -150,8 +153,6 @@ class Agv(AgvInstantActions, AgvJournal):
         self._pause_action: str | None = None
         self._cancel_action: str | None = None
         self._last_node: tuple[str, int] = ("", 0)
-        self._in_slot = False
-        """A pick or drop leg waits with the forks in the slot for the back-out's release."""
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.persister: Persister | None = None
@@ -475,8 +476,9 @@ class Agv(AgvInstantActions, AgvJournal):
         state = data.get("state")
         if event == "state_start":
             if state == "reverse_out" and not self.orders.can_enter(pre):
+                self._in_slot = True  # before the back-out's drive selects its fields (`legs.SlotFields`)
+                self.vehicle.set_safety_field_set("narrow")
                 self._gate(pre)
-                self._in_slot = True
             elif state == "return_to_roadmap":
                 ctx = runner.ctx
                 if ctx.node_before and ctx.pre_node and self.roadmap.node(ctx.pre_node).temporary:
@@ -568,10 +570,6 @@ class Agv(AgvInstantActions, AgvJournal):
             changed = True
         if self._in_slot and (snap.speed < -0.02 or leg is None):
             self._in_slot = False  # backing out: the scanners watch behind the truck (any field set)
-        elif self._in_slot:
-            # standing in the slot (the back-out waited for its release): the normal forward fields would see
-            # the load just handled ahead of the forks and hold the truck for good; the narrow set mutes it
-            self.vehicle.set_safety_field_set("narrow")
         if self._pause_action is not None and not snap.driving:
             self._finish(self._pause_action)
             self._pause_action, changed = None, True
@@ -579,7 +577,9 @@ class Agv(AgvInstantActions, AgvJournal):
             self.controls.stopping = False  # standing: the leg ends now (no safety stop at this speed)
             self.controls.cancel("cancelled by the master (cancelOrder)")
         if self._cancel_action is not None and self.runner is None and not snap.driving:
-            self._finish(self._cancel_action)
+            with o.lock:  # one state: the order deleted and the cancel FINISHED
+                o.cancel()
+                self._finish(self._cancel_action)
             self._cancel_action, changed = None, True
             self.controls.reset()
         if changed:

@@ -4,7 +4,11 @@ waits at), the planner that hands the runner exactly the order's edges (`OrderPl
 
 The route of a leg that starts with the truck part way along its first edge (`from_where_it_stands`).
 
-Public API: `AgvControls`, `OrderPlanner`, `speed_limits`, `from_where_it_stands`, `HERE`.
+A pick or drop leg that waits, forks in the slot, for its back-out to be released keeps the scanners' narrow
+field set (`SlotFields`): the normal forward fields would see the load just handled ahead of the forks, and
+the protective stop would hold the truck for good.
+
+Public API: `AgvControls`, `OrderPlanner`, `speed_limits`, `from_where_it_stands`, `HERE`, `SlotFields`.
 """
 
 from __future__ import annotations
@@ -12,9 +16,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import itertools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from palletpilot.executor.controls import Controls
+from palletpilot.executor.ports import VehiclePort
 from palletpilot.executor.vda5050.midedge import locate, rest_of
 from palletpilot.executor.vda5050.orders import Leg, OrderManager
 from palletpilot.executor.vda5050.routes import DEFAULT_DEVIATION_XY
@@ -102,3 +108,19 @@ def from_where_it_stands(roadmap: Roadmap, leg: Leg, x: float, y: float) -> Iter
         overlay.add_node(node)
         overlay.add_edge(edge)
         yield (node.id, *route[1:])
+
+
+class SlotFields:
+    """The vehicle as the AGV's runners drive it (every call passed through), except that while `in_slot()`
+    (a pick or drop standing with the forks in the slot until its back-out is released) the scanners keep
+    the narrow field set, whatever set a drive asks for (backing out, the reverse fields watch anyway)."""
+
+    def __init__(self, vehicle: VehiclePort, in_slot: Callable[[], bool]) -> None:
+        self._vehicle, self._in_slot = vehicle, in_slot
+
+    def set_safety_field_set(self, name: str) -> None:
+        """Select the scanners' field set: `narrow` while in the slot, else `name`."""
+        self._vehicle.set_safety_field_set("narrow" if self._in_slot() else name)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._vehicle, name)
