@@ -350,19 +350,7 @@ class Agv(AgvInstantActions, AgvJournal):
                     self._charging(a, a.action_type == "startCharging")
             return
         action = leg.actions[0] if leg.actions else None
-        task: dict[str, Any] = {"type": "move", "node": leg.route[-1]}
-        pallet = self._carried_type
-        if action is not None:
-            height = action.param("height")
-            task = {"type": "pickup" if leg.kind == "pick" else "delivery", "node": leg.route[-1]}
-            if isinstance(height, (int, float)) and not isinstance(height, bool):
-                task["height"] = float(height)
-            load_type = action.param("loadType")
-            if isinstance(load_type, str) and pallet_name(load_type):
-                pallet = str(pallet_name(load_type))
-        mission = Mission.model_validate(
-            {"name": f"vda5050 {o.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet, "tasks": [task]}
-        )
+        mission, pallet = self._mission(leg, action)
         self.log(f"agv: {leg.kind} {' -> '.join(leg.route)}")
         node_ref = [("node.nodeId", o.nodes[leg.index].node_id)] if leg.index < len(o.nodes) else []
         line: dict[str, Any] = {
@@ -425,12 +413,35 @@ class Agv(AgvInstantActions, AgvJournal):
                     self._carried_type = pallet
                 self._set(action, A.FINISHED)
             return
+        self._leg_failed(leg, action, result, node_ref)
+
+    def _mission(self, leg: Leg, action: Action | None) -> tuple[Mission, str]:
+        """The one-task mission of a leg (move, pickup, delivery) and the pallet type it handles."""
+        task: dict[str, Any] = {"type": "move", "node": leg.route[-1]}
+        pallet = self._carried_type
+        if action is not None:
+            height = action.param("height")
+            task = {"type": "pickup" if leg.kind == "pick" else "delivery", "node": leg.route[-1]}
+            if isinstance(height, (int, float)) and not isinstance(height, bool):
+                task["height"] = float(height)
+            load_type = action.param("loadType")
+            if isinstance(load_type, str) and pallet_name(load_type):
+                pallet = str(pallet_name(load_type))
+        doc = {"name": f"vda5050 {self.orders.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet}
+        return Mission.model_validate({**doc, "tasks": [task]}), pallet
+
+    def _leg_failed(
+        self, leg: Leg, action: Action | None, result: TaskResult | None, node_ref: list[tuple[str, str]]
+    ) -> None:
+        """A leg that failed (not by a cancel): the truck halts, the error names the leg's order node (a new
+        order may have come since) and its action (FAILED, when it is still this order's)."""
+        o = self.orders
         reason = (result.reason if result else None) or "internal_error"
         message = (result.message if result else None) or reason
         if reason == CANCELLED and (self._cancel_action is not None or self._stop.is_set()):
             return
         self.halted = reason
-        refs: list[tuple[str, str]] = list(node_ref)  # the leg's order node (a new order may have come since)
+        refs: list[tuple[str, str]] = list(node_ref)
         record = o.actions.record_of(action) if action is not None else None
         if action is not None and record is not None:
             refs += [("actionId", action.action_id), ("actionType", action.action_type)]
