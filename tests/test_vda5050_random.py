@@ -49,6 +49,8 @@ class RandomMaster:
     def walk(self, start: str, heading: float | None, n: int) -> list[str]:
         """A roadmap walk from `start` driveable without turning on the spot, picking at pallet nodes."""
         path = [start]
+        if start not in self.roadmap:  # a temporary node of a restart: an update adds nothing to it
+            return path
         for _ in range(n):
             here = path[-1]
             nexts = [
