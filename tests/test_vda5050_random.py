@@ -127,7 +127,7 @@ class RandomMaster:
                 self.restart(s, on.start, on.end)
                 return kind
             if start is None:
-                start, seq = s["lastNodeId"] or "a2", s["lastNodeSequenceId"]
+                start, seq = s["lastNodeId"] or agv.backend.start_node or "a2", s["lastNodeSequenceId"]
             self.order(f"r{self.count}", self.walk(start, heading, self.rng.randint(1, 6)), 0, seq)
         elif kind == "update" and self.nodes:
             node, seq = self.nodes[-1]
