@@ -3,7 +3,7 @@
 point, stitches, stale resends, orders starting elsewhere, cancels, pauses and other instant actions. It
 asserts no exit of the executor thread, no internalError, every state schema-valid, and a standing truck
 after every failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPILOT_VDA_RANDOM_MESSAGES`
-(default 40) size it; the figures are printed (`pytest -s`)."""
+(default 30) size it; the figures are printed (`pytest -s`)."""
 
 from __future__ import annotations
 
@@ -209,7 +209,7 @@ def random_run(tmp_path: Path, seed: int, messages: int) -> dict[str, Any]:
 
 def test_random_valid_messages_never_end_the_agv(tmp_path: Path) -> None:
     runs = int(os.environ.get("PALLETPILOT_VDA_RANDOM_RUNS", "3"))
-    messages = int(os.environ.get("PALLETPILOT_VDA_RANDOM_MESSAGES", "40"))
+    messages = int(os.environ.get("PALLETPILOT_VDA_RANDOM_MESSAGES", "30"))
     started = time.monotonic()
     figures = [random_run(tmp_path / f"run{seed}", seed, messages) for seed in range(1, runs + 1)]
     total = sum(f["messages"] for f in figures)
