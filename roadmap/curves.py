@@ -287,6 +287,10 @@ class CubicBezier(Curve):
     def length(self) -> float:
         return self._length
 
+    def parameter_at(self, s: float) -> float:
+        """The Bezier parameter t (0..1) at arc length `s` (m) from the start (the arc-length table)."""
+        return float(np.interp(s, self._s, self._T))
+
     def sample(self, s: ArrayLike) -> CurveSamples:
         s_arr = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self._length)
         t = np.interp(s_arr, self._s, self._T)

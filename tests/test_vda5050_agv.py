@@ -93,7 +93,9 @@ def test_pick_and_drop_order_through_a_broker_restart(tmp_path: Path) -> None:
         loads = master.wait("the load", lambda d: bool(d["loads"]), 10)["loads"]
         assert loads[0]["loadId"] == "L-0042" and loads[0]["loadType"] == "eur"
         seen = [status(d, "pick1") for d in master.messages("state")]
-        assert seen.index("INITIALIZING") < seen.index("RUNNING") < seen.index("FINISHED")
+        assert "INITIALIZING" not in seen and seen.index("WAITING") < seen.index("RUNNING") < seen.index("FINISHED")
+        running = [d for d in master.messages("state") if status(d, "pick1") == "RUNNING"]
+        assert all(d["lastNodeId"] == "floor_a3" and not d["driving"] for d in running)  # at its node, standing
 
         # the decision point is a3: release the rest, stitching there (its sequenceId is 10)
         master.send_order("t1", path[5:], update=1, seq0=10, actions={6: [drop]})

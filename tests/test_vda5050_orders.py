@@ -550,3 +550,25 @@ def test_outgoing_messages_are_schema_valid(manager: OrderManager, world: tuple[
     actions = {a["actionType"] for a in facts["protocolFeatures"]["agvActions"]}
     assert {"pick", "drop", "cancelOrder", "startPause", "factsheetRequest", "initPosition"} <= actions
     json.dumps(facts)
+
+
+def test_the_factsheet_s_load_sets_name_exactly_the_load_types_orders_accept(world: tuple[Any, Any]) -> None:
+    """Issue 39: the factsheet named `eur`, `industrial`, ... while orders accepted `EPAL` too. Every loadSet's
+    loadType is accepted by a pick; a loadType that no loadSet names is refused, the refusal naming them."""
+    roadmap, vehicle = world
+    messages = Messages(validation.Headers("2.1.0", "palletpilot", "0001"), "warehouse", "abc", vehicle, 30.0, 2.0)
+    facts = messages.factsheet()
+    assert validation.problems("factsheet", facts) == []
+    names = [s["loadType"] for s in facts["loadSpecification"]["loadSets"]]
+    assert (
+        "EPAL" in names
+        and "eur" in names
+        and len({s["setName"] for s in facts["loadSpecification"]["loadSets"]}) == len(names)
+    )
+    for name in names:
+        manager = OrderManager(roadmap, "warehouse", vehicle)
+        decision = manager.receive_order(order(PICK_PATH, actions={3: [pick(loadType=name)]}), AT_A2)
+        assert decision.accepted, (name, decision.error)
+    manager = OrderManager(roadmap, "warehouse", vehicle)
+    decision = manager.receive_order(order(PICK_PATH, actions={3: [pick(loadType="barrel")]}), AT_A2)
+    assert decision.error is not None and all(n in decision.error.description for n in names)

@@ -161,7 +161,10 @@ def test_restore_fails_the_running_action_and_halts_the_truck(tmp_path: Path) ->
         agv.on_message("order", message(update, 2))
         assert agv.orders.order_update_id == 0 and agv.orders.errors[-1].error_type == "orderUpdateError"
         agv.on_message("instantActions", message({"actions": [action("cancelOrder", "c1")]}, 3))
-        assert agv.halted is None and agv.orders.node_states() == [] and status(agv.state_message(), "c1")
+        assert agv.halted is None and status(agv.state_message(), "c1") == "RUNNING"
+        agv._on_tick()  # a tick of the standing truck: the order goes, in one state with the cancel FINISHED
+        s = agv.state_message()
+        assert agv.orders.node_states() == [] and status(s, "c1") == "FINISHED" and status(s, "pick1") == "FAILED"
         agv.on_message("order", message(make_order("o2", ["b1", "b2"]), 4))
         s = agv.state_message()
         assert s["orderId"] == "o2" and s["lastNodeId"] == "b1" and s["errors"] == [], s["errors"]

@@ -243,6 +243,12 @@ class ActionTable:
         """The record of an action id (KeyError when unknown)."""
         return self._records[action_id]
 
+    def record_of(self, action: Action) -> ActionRecord | None:
+        """The record of exactly this action object, or None when it is gone (a new order replaced the action
+        states, perhaps reusing its actionId for another action)."""
+        record = self._records.get(action.action_id)
+        return record if record is not None and record.action is action else None
+
     def add(self, action: Action, scope: str, status: ActionStatus = ActionStatus.WAITING) -> ActionRecord:
         """Record a received action in its first status (WAITING for order actions)."""
         with self._lock:

@@ -11,16 +11,20 @@ Execution, one `Runner` per leg (`OrderManager.plan_next`), each with a one-task
 - `move`: a Move task to the leg's last node along exactly the order's edges (`OrderPlanner` hands the
   runner the order's route); nodes on the way count as traversed when the truck passes within their
   deviation range, the last one when the truck stands there. Edges with `maxSpeed` are slowed for the leg.
-- `pick`: at the pallet node's pre-pallet node, the adaptive Pickup (`loadType` -> pallet type, `height`):
-  the action is INITIALIZING while it calibrates and estimates (and re-plans), RUNNING from entering the
-  pallet, FINISHED once the load is lifted; the pallet node is traversed when the forks are in, the
-  pre-pallet node when the truck has backed out. Backing out waits (the runner held as in a pause) until
-  that edge is released. A failed Pickup: FAILED with the reason in an error (`palletNotFound`, ...).
-- `drop`: the checked Delivery likewise (RUNNING from entering the slot, FINISHED once lowered).
+- `pick`: at the pallet node's pre-pallet node, the adaptive Pickup (`loadType` -> pallet type, `height`).
+  Its approach (calibrate, estimate, re-plan, enter) is the traversal of the order's last edge: the action
+  stays WAITING (section 6.11, table 2; node actions start at their node, 6.10.2) until the forks are in
+  and the pallet node is traversed, then RUNNING while the truck stands and lifts, FINISHED once the load
+  is lifted; the pre-pallet node is traversed when the truck has backed out. Backing out waits (the runner
+  held as in a pause, the scanners' narrow set muting the load ahead of the forks) until that edge is
+  released. A failed Pickup: FAILED with the reason in an error (`palletNotFound`, ...).
+- `drop`: the checked Delivery likewise (WAITING until the forks are in the slot, RUNNING while lowering).
 - `actions`: node actions of the current node (`startCharging`, `stopCharging`).
 
-After a failure the truck stays stopped and takes no further leg until the master cancels the order or
-sends a new one. Connection loss changes nothing here: the truck goes on up to the last released node.
+An error in this AGV's own code (not a task's failure) stops the truck and halts the order with a FATAL
+`internalError`; the executor thread goes on. After a failure the truck stays stopped and takes no further
+leg until the master cancels the order or sends a new one. Connection loss changes nothing here: the
+truck goes on up to the last released node.
 
 Instant actions: `instant.AgvInstantActions` (a base of `Agv`) runs them on the network thread.
 
@@ -42,18 +46,25 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import itertools
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, cast
 
 from palletpilot.executor.adapters.local_perception import LocalPerception
 from palletpilot.executor.apps.vda5050 import validation
 from palletpilot.executor.apps.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.apps.vda5050.config import Loaded
 from palletpilot.executor.apps.vda5050.instant import AgvInstantActions
+from palletpilot.executor.apps.vda5050.legs import (
+    AgvControls,
+    OrderPlanner,
+    SlotFields,
+    from_where_it_stands,
+    speed_limits,
+)
+from palletpilot.executor.apps.vda5050.midedge import locate
 from palletpilot.executor.apps.vda5050.models import Action, ActionStatus, AgvError
 from palletpilot.executor.apps.vda5050.mqtt import AgvLink
 from palletpilot.executor.apps.vda5050.orders import Leg, OrderManager, VehicleView
@@ -64,55 +75,20 @@ from palletpilot.executor.apps.vda5050.state import Messages, Snapshot, error_ty
 from palletpilot.executor.apps.vda5050.validation import Headers
 from palletpilot.executor.apps.vda5050.vehicle import Backend
 from palletpilot.executor.core.behaviour import Settings
-from palletpilot.executor.core.controls import Controls
-from palletpilot.executor.core.errors import CANCELLED
+from palletpilot.executor.core.errors import CANCELLED, INTERNAL_ERROR
 from palletpilot.executor.core.mission import Mission
 from palletpilot.executor.core.results import TaskResult
 from palletpilot.executor.core.runner import Runner
 from palletpilot.executor.ports import VehiclePort
 from palletpilot.geometry import angle_diff
 from palletpilot.perception.specs import builtin_pallet
-from palletpilot.roadmap import Planner, Roadmap, Route
 
 if TYPE_CHECKING:
     from palletpilot.executor.adapters.mcap.recording import Recorder
 
 A = ActionStatus
-
-
-class AgvControls(Controls):
-    """The runner's controls: paused while the master paused the truck or a leg waits for a release."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.master_pause = False
-        self.gate: str | None = None
-        """A roadmap node the running leg waits to be allowed to enter."""
-
-    def refresh(self) -> None:
-        """Recompute `paused` from the master's pause and the gate."""
-        self.paused = self.master_pause or self.gate is not None
-
-    def reset(self) -> None:
-        """Clear a cancel and the gate; the master's pause stays."""
-        super().reset()
-        self.gate = None
-        self.refresh()
-
-
-class OrderPlanner(Planner):
-    """A planner that answers the leg's route with exactly the order's edges (and plans anything else)."""
-
-    def __init__(self, roadmap: Roadmap, route: tuple[str, ...]) -> None:
-        super().__init__(roadmap)
-        self.route = route
-
-    def plan(self, start: str, goal: str, start_yaw: float | None = None, goal_yaw: float | None = None) -> Route:
-        """The order's route from its first to its last node; other requests go to the roadmap planner."""
-        r = self.route
-        if len(r) >= 2 and start == r[0] and goal == r[-1]:
-            return Route(list(r), [self.roadmap.edge(a, b) for a, b in itertools.pairwise(r)])
-        return super().plan(start, goal, start_yaw=start_yaw, goal_yaw=goal_yaw)
+STOPPED_SPEED = 0.01
+"""m/s: a cancelOrder cancels the running leg once the truck is this slow (the runner's service stop)."""
 
 
 class Agv(AgvInstantActions, AgvJournal):
@@ -135,6 +111,8 @@ class Agv(AgvInstantActions, AgvJournal):
         self.vehicle: VehiclePort = backend.vehicle
         """What the runners drive and the AGV samples (the recorder's pass-through wrapper when recording)."""
         self.grab = backend.grab
+        self._in_slot = False
+        """A pick or drop leg waits with the forks in the slot for the back-out's release (`legs.SlotFields`)."""
         self.results: list[TaskResult] = []
         """Every leg's task results, in order (the session's `/report/run`)."""
         self.legs: list[dict[str, Any]] = []
@@ -150,6 +128,7 @@ class Agv(AgvInstantActions, AgvJournal):
             perception = backend.perception
             if isinstance(perception, LocalPerception) and perception.segmenter is not None:
                 perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
+        self.vehicle = cast(VehiclePort, SlotFields(self.vehicle, lambda: self._in_slot))
         self.orders = OrderManager(loaded.roadmap, cfg.map_name, loaded.vehicle)
         version = hashlib.sha256(loaded.map_path.read_bytes()).hexdigest()[:12]
         headers = Headers(cfg.protocol_version, cfg.manufacturer, cfg.serial_number)
@@ -299,9 +278,14 @@ class Agv(AgvInstantActions, AgvJournal):
             self.messages.headers.version = wanted
 
     def view(self) -> VehicleView:
-        """The truck as the acceptance flow sees it."""
+        """The truck as the acceptance flow sees it (with the roadmap edge it stands on part way, if any)."""
         s = self.snapshot
-        return VehicleView(s.x, s.y, s.theta, self.heading, s.loaded, self.charging, "; ".join(s.faults) or None)
+        on = None
+        if self.leg is None:
+            with contextlib.suppress(KeyError, ValueError, RuntimeError):  # the roadmap changing meanwhile
+                on = locate(self.roadmap, self.orders.last_rm, s.x, s.y, DEFAULT_DEVIATION_XY)
+        fault = "; ".join(s.faults) or None
+        return VehicleView(s.x, s.y, s.theta, self.heading, s.loaded, self.charging, fault, on)
 
     def _order(self, doc: dict[str, Any]) -> None:
         decision = self.orders.receive_order(doc, self.view())
@@ -329,14 +313,40 @@ class Agv(AgvInstantActions, AgvJournal):
         self.heading = self._axis_heading(start) if start else self.snapshot.theta
         while not self._stop.is_set():
             leg = None
-            if self.halted is None and not self.controls.master_pause and self._cancel_action is None:
-                leg = self.orders.plan_next()
-            if leg is None:
-                self.vehicle.stop()
-                self.backend.clock.tick()
-                continue
-            self._leg(leg)
+            try:
+                if self.halted is None and not self.controls.master_pause and self._cancel_action is None:
+                    leg = self.orders.plan_next()
+                if leg is None:
+                    self.vehicle.stop()
+                    self.backend.clock.tick()
+                    continue
+                self._leg(leg)
+            except Exception as exc:  # never an exit: the truck stops and the master hears why
+                self._internal_failure(leg, exc)
             self.changed()
+
+    def _internal_failure(self, leg: Leg | None, exc: Exception) -> None:
+        """A bug in this AGV's own code (not the runner's, which fails its task): stop the truck, drop the
+        leg, halt until the master sends an order (or cancels), and report a FATAL `internalError`."""
+        import traceback
+
+        with contextlib.suppress(Exception):
+            self.vehicle.stop()
+        self.runner, self.leg, self.halted = None, None, INTERNAL_ERROR
+        self.controls.gate = None
+        self.controls.refresh()
+        where = f" in a {leg.kind} leg" if leg is not None else ""
+        why = f"{type(exc).__name__}{where}: {exc}"
+        self.log(f"agv: internal error{where}: {''.join(traceback.format_exception(exc)).rstrip()}")
+        error = AgvError(
+            error_type(INTERNAL_ERROR),
+            reason_level(INTERNAL_ERROR),
+            f"{INTERNAL_ERROR}: {why}"[:500],
+            (("reason", INTERNAL_ERROR),),
+            "the truck stopped; check it, then cancel the order (cancelOrder) and send a new one",
+        )
+        with self.orders.lock:
+            self.orders.errors.append(error)
 
     def _leg(self, leg: Leg) -> None:
         o = self.orders
@@ -347,21 +357,9 @@ class Agv(AgvInstantActions, AgvJournal):
                     self._charging(a, a.action_type == "startCharging")
             return
         action = leg.actions[0] if leg.actions else None
-        task: dict[str, Any] = {"type": "move", "node": leg.route[-1]}
-        pallet = self._carried_type
-        if action is not None:
-            height = action.param("height")
-            task = {"type": "pickup" if leg.kind == "pick" else "delivery", "node": leg.route[-1]}
-            if isinstance(height, (int, float)) and not isinstance(height, bool):
-                task["height"] = float(height)
-            load_type = action.param("loadType")
-            if isinstance(load_type, str) and pallet_name(load_type):
-                pallet = str(pallet_name(load_type))
-            self._set(action.action_id, A.INITIALIZING)
-        mission = Mission.model_validate(
-            {"name": f"vda5050 {o.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet, "tasks": [task]}
-        )
+        mission, pallet = self._mission(leg, action)
         self.log(f"agv: {leg.kind} {' -> '.join(leg.route)}")
+        node_ref = [("node.nodeId", o.nodes[leg.index].node_id)] if leg.index < len(o.nodes) else []
         line: dict[str, Any] = {
             "order_id": o.order_id,
             "order_update_id": o.order_update_id,
@@ -373,7 +371,8 @@ class Agv(AgvInstantActions, AgvJournal):
         }
         self._note("leg_start", **{k: line[k] for k in ("order_id", "order_update_id", "kind", "route")})
         self.leg = leg
-        with self._speed_limits(leg):
+        s = self.snapshot
+        with self._speed_limits(leg), from_where_it_stands(self.roadmap, leg, s.x, s.y) as route:
             runner = Runner(
                 mission,
                 self.roadmap,
@@ -383,14 +382,14 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.backend.clock,
                 self.backend.params,
                 self.backend.forks,
-                leg.route[0],
+                route[0],
                 settings=self.settings,
                 follower=self.backend.follower,
                 controls=self.controls,
                 listeners=[*self.backend.listeners, self._on_event],
             )
-            runner.ctx.heading = self.heading
-            runner.ctx.planner = OrderPlanner(self.roadmap, leg.route)
+            runner.ctx.heading = self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw
+            runner.ctx.planner = OrderPlanner(self.roadmap, route)
             self.runner = runner
             if self.recorder is not None:
                 self.recorder.attach(runner)
@@ -401,6 +400,9 @@ class Agv(AgvInstantActions, AgvJournal):
                     self.recorder.detach()
         self.runner, self.leg = None, None
         self.heading = runner.ctx.heading
+        near = None if ok else self._nearest_node()
+        if near is not None:  # stopped at a node (cancelled, failed): the heading it stands with there
+            self.heading = self._axis_heading(near)
         self.controls.gate = None
         self.controls.refresh()
         result = runner.results[-1] if runner.results else None
@@ -416,15 +418,39 @@ class Agv(AgvInstantActions, AgvJournal):
             elif action is not None:
                 if leg.kind == "pick":
                     self._carried_type = pallet
-                self._set(action.action_id, A.FINISHED)
+                self._set(action, A.FINISHED)
             return
+        self._leg_failed(leg, action, result, node_ref)
+
+    def _mission(self, leg: Leg, action: Action | None) -> tuple[Mission, str]:
+        """The one-task mission of a leg (move, pickup, delivery) and the pallet type it handles."""
+        task: dict[str, Any] = {"type": "move", "node": leg.route[-1]}
+        pallet = self._carried_type
+        if action is not None:
+            height = action.param("height")
+            task = {"type": "pickup" if leg.kind == "pick" else "delivery", "node": leg.route[-1]}
+            if isinstance(height, (int, float)) and not isinstance(height, bool):
+                task["height"] = float(height)
+            load_type = action.param("loadType")
+            if isinstance(load_type, str) and pallet_name(load_type):
+                pallet = str(pallet_name(load_type))
+        doc = {"name": f"vda5050 {self.orders.order_id}", "map": str(self.loaded.map_path), "pallet_type": pallet}
+        return Mission.model_validate({**doc, "tasks": [task]}), pallet
+
+    def _leg_failed(
+        self, leg: Leg, action: Action | None, result: TaskResult | None, node_ref: list[tuple[str, str]]
+    ) -> None:
+        """A leg that failed (not by a cancel): the truck halts, the error names the leg's order node (a new
+        order may have come since) and its action (FAILED, when it is still this order's)."""
+        o = self.orders
         reason = (result.reason if result else None) or "internal_error"
         message = (result.message if result else None) or reason
         if reason == CANCELLED and (self._cancel_action is not None or self._stop.is_set()):
             return
         self.halted = reason
-        refs: list[tuple[str, str]] = [("node.nodeId", o.nodes[leg.index].node_id)] if leg.index < len(o.nodes) else []
-        if action is not None:
+        refs: list[tuple[str, str]] = list(node_ref)
+        record = o.actions.record_of(action) if action is not None else None
+        if action is not None and record is not None:
             refs += [("actionId", action.action_id), ("actionType", action.action_type)]
         error = AgvError(
             error_type(reason),
@@ -433,46 +459,29 @@ class Agv(AgvInstantActions, AgvJournal):
             (*refs, ("reason", reason)),
             "the truck stopped; cancel the order (cancelOrder) and send a new one",
         )
-        if action is not None and not o.actions.get(action.action_id).final:
+        if action is not None and record is not None and not record.final:
             o.fail_action(action.action_id, error, f"{reason}: {message}")
         else:
             with o.lock:
                 o.errors.append(error)
         self.log(f"agv: {leg.kind} failed: {reason}: {message}")
 
-    @contextlib.contextmanager
-    def _speed_limits(self, leg: Leg) -> Iterator[None]:
-        """Slow the roadmap edges of a move leg to the order's `maxSpeed` for the leg, then restore them."""
-        import dataclasses
+    def _speed_limits(self, leg: Leg) -> contextlib.AbstractContextManager[None]:
+        """The order's `maxSpeed` on the leg's roadmap edges while it runs (`legs.speed_limits`)."""
+        return speed_limits(self.orders, self.roadmap, leg)
 
-        o, replaced = self.orders, []
-        if leg.kind == "move":
-            with o.lock:
-                first = o.cursor - 1
-                edges = o.edges[first : first + len(leg.route) - 1]
-            for (a, b), e in zip(zip(leg.route, leg.route[1:], strict=False), edges, strict=False):
-                limit = e.raw.get("maxSpeed")
-                old = self.roadmap.edge(a, b)
-                if limit is not None and float(limit) < old.speed_limit:
-                    self.roadmap.remove_edge(a, b)
-                    self.roadmap.add_edge(dataclasses.replace(old, speed_limit=float(limit)))
-                    replaced.append(old)
+    def _set(self, action: Action, status: ActionStatus) -> None:
+        """Move an order action on; while it is PAUSED the new status waits for the resume. Nothing when its
+        order's action states are gone (a new order came while the leg ran)."""
+        record = self.orders.actions.record_of(action)
+        if record is None:
+            return
         try:
-            yield
-        finally:
-            for old in replaced:
-                self.roadmap.remove_edge(old.start, old.end)
-                self.roadmap.add_edge(old)
-
-    def _set(self, action_id: str, status: ActionStatus) -> None:
-        """Move an order action on; while it is PAUSED the new status waits for the resume."""
-        try:
-            record = self.orders.actions.get(action_id)
             if record.status is A.PAUSED and status in (A.INITIALIZING, A.RUNNING):
                 record.resume_to = status
             elif not record.final:
-                self.orders.actions.set(action_id, status)
-        except (KeyError, IllegalTransitionError) as exc:
+                self.orders.actions.set(action.action_id, status)
+        except IllegalTransitionError as exc:
             self.log(f"agv: {exc}")
         self.changed()
 
@@ -484,9 +493,9 @@ class Agv(AgvInstantActions, AgvJournal):
         a, pre, node = leg.actions[0], leg.route[0], leg.route[-1]
         state = data.get("state")
         if event == "state_start":
-            if state == "enter":
-                self._set(a.action_id, A.RUNNING)
-            elif state == "reverse_out" and not self.orders.can_enter(pre):
+            if state == "reverse_out" and not self.orders.can_enter(pre):
+                self._in_slot = True  # before the back-out's drive selects its fields (`legs.SlotFields`)
+                self.vehicle.set_safety_field_set("narrow")
                 self._gate(pre)
             elif state == "return_to_roadmap":
                 ctx = runner.ctx
@@ -494,8 +503,9 @@ class Agv(AgvInstantActions, AgvJournal):
                     if not self.orders.can_enter(ctx.node_before):
                         self._gate(ctx.node_before)
         elif event == "state_end" and data.get("outcome") == "done":
-            if state == "enter":
+            if state == "enter":  # the node is reached: the action runs there (the truck stands)
                 self.orders.arrive(node)
+                self._set(a, A.RUNNING)
             elif state == ("lift" if leg.kind == "pick" else "lower"):
                 self._handled(a, leg.kind)
             elif state == "reverse_out":
@@ -517,7 +527,7 @@ class Agv(AgvInstantActions, AgvJournal):
             self.load = load
         else:
             self.load = None
-        self._set(a.action_id, A.FINISHED)
+        self._set(a, A.FINISHED)
 
     def _gate(self, node: str) -> None:
         self.controls.gate = node
@@ -576,11 +586,18 @@ class Agv(AgvInstantActions, AgvJournal):
             self.controls.gate = None
             self.controls.refresh()
             changed = True
+        if self._in_slot and (snap.speed < -0.02 or leg is None):
+            self._in_slot = False  # backing out: the scanners watch behind the truck (any field set)
         if self._pause_action is not None and not snap.driving:
             self._finish(self._pause_action)
             self._pause_action, changed = None, True
+        if self._cancel_action is not None and self.controls.stopping and abs(snap.speed) < STOPPED_SPEED:
+            self.controls.stopping = False  # standing: the leg ends now (no safety stop at this speed)
+            self.controls.cancel("cancelled by the master (cancelOrder)")
         if self._cancel_action is not None and self.runner is None and not snap.driving:
-            self._finish(self._cancel_action)
+            with o.lock:  # one state: the order deleted and the cancel FINISHED
+                o.cancel()
+                self._finish(self._cancel_action)
             self._cancel_action, changed = None, True
             self.controls.reset()
         if changed:

@@ -40,7 +40,7 @@ from pathlib import Path
 from types import FrameType
 
 from palletpilot.executor.adapters.mcap.recording_channels import add_foxglove_argument
-from palletpilot.executor.apps.cli_args import add_labels_argument, out_folder, seed
+from palletpilot.executor.apps.cli_args import add_labels_argument, number, out_folder, seed
 
 FLUSH_S = 5.0
 """The session's recording finishes its current chunk at least this often (wall seconds)."""
@@ -80,8 +80,10 @@ def cmd_agv(args: argparse.Namespace) -> int:
         journal_path = Path(args.journal) if args.journal else folder / JOURNAL_NAME
         session = open_session(journal_path, agv_meta(cfg.manufacturer, cfg.serial_number, cfg.map_name))
         if args.sim:
-            backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed)
+            backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed, speed=args.sim_speed)
         else:
+            if args.sim_speed != 1.0:
+                raise BackendError("--sim-speed: only with --sim (a real truck runs in real time)")
             if args.labels == SIM_TRUTH:
                 raise BackendError("--labels truth: the simulator's labels exist only with --sim")
             backend = robot_backend(loaded, args.robot, labels=LabelsMode(args.labels))
@@ -169,6 +171,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     where.add_argument("--robot", metavar="ROBOT.yaml", help="drive a real truck (needs the ROS 2 adapter)")
     add_labels_argument(p, sim=True)
     p.add_argument("--seed", type=seed, help="--sim: override the scenario's seed")
+    p.add_argument(
+        "--sim-speed",
+        type=number(0.1, 20.0),
+        default=1.0,
+        metavar="FACTOR",
+        help="--sim: simulated seconds per wall-clock second at most (default 1, real time); above 1 for tests: "
+        "as fast as the machine allows, no wall-clock deadlines",
+    )
     p.add_argument(
         "--report",
         type=out_folder,

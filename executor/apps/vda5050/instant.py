@@ -2,7 +2,11 @@
 
 - `startPause` / `stopPause`: the runner's controls pause (a driving truck's pause is RUNNING until it
   stands, then FINISHED; `agv.Agv` finishes it);
-- `cancelOrder`: the order is cancelled and the running leg stopped (RUNNING until the truck stands);
+- `cancelOrder`: RUNNING while the truck brakes to a standstill as in a pause (a cancel at speed would be
+  the truck's latched safety stop, and it could never drive again); then the running leg is cancelled, and
+  once no leg runs the order is deleted (its actions FAILED, no node or edge states) in the same state
+  that reports the cancelOrder FINISHED (a master, e.g. coatyio's vda-5050-lib, reads the order's end
+  then as a cancellation);
 - `startCharging` / `stopCharging`: only at a charging node (within `CHARGER_RADIUS_M`) and standing,
   else FAILED with `chargingError`;
 - `initPosition`: accepted only when it agrees with localization (`INIT_POSITION_XY_M`,
@@ -10,7 +14,8 @@
   it then sets lastNodeId, else FAILED with `initPositionError`;
 - `stateRequest`, `factsheetRequest`: FINISHED at once (the factsheet is published).
 
-A refused action is FAILED with a WARNING error naming the action; the truck never moves for one.
+A refused action is FAILED with a WARNING error naming the action; the truck never moves for one. A 2.0.x
+master's list may be named `instantActions`, as the published 2.0.0 JSON schema has it (2.1: `actions`).
 
 Public API: `AgvInstantActions` (a base of `agv.Agv`), `CHARGER_RADIUS_M`, `INIT_POSITION_XY_M`,
 `INIT_POSITION_YAW`.
@@ -60,6 +65,8 @@ class AgvInstantActions:
     _axis_heading: Callable[[str], float]
 
     def _instant(self, doc: dict[str, Any]) -> None:
+        if str(doc.get("version", "")).startswith("2.0.") and "actions" not in doc and "instantActions" in doc:
+            doc = {**doc, "actions": doc.pop("instantActions")}  # the 2.0.0 JSON schema's name (2.1: `actions`)
         for record in self.orders.receive_instant_actions(doc):
             a = record.action
             try:
@@ -86,11 +93,11 @@ class AgvInstantActions:
             o.actions.unpause()
             o.actions.set(a.action_id, A.FINISHED)
         elif t == "cancelOrder":
-            o.actions.set(a.action_id, A.RUNNING)
-            o.cancel()
+            o.actions.set(a.action_id, A.RUNNING)  # the order goes once the truck stands (`agv.Agv`)
             self.halted = None
             self._cancel_action = a.action_id
-            self.controls.cancel("cancelled by the master (cancelOrder)")
+            self.controls.stopping = True  # braked to a standstill first, then the leg is cancelled (`agv.Agv`)
+            self.controls.refresh()
         elif t in ("startCharging", "stopCharging"):
             self._charging(a, t == "startCharging")
         elif t == "initPosition":

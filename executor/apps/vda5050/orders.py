@@ -20,8 +20,12 @@ Acceptance of an `order` message, in this order:
    drivable in sequence (`noRouteError`), edge fields and node actions this truck can perform, no zone set
    (`orderError`); an order is refused while charging or with a FATAL vehicle fault (`orderError`).
 5. A new order (not executing) starts where the truck stands: within the first node's deviation range,
-   else `noRouteError`. Accepted: node and edge states of the new order, the action states of its actions
-   (WAITING; earlier action states go, running instant actions stay), the first node traversed at once.
+   else `noRouteError` (checked before the route, so a far order is refused for its distance). After a
+   cancel part way along an edge (section 6.6.3.1, `VehicleView.on_edge`) it may start at lastNodeId with a
+   deviation range that reaches the truck, or at a node off the roadmap where the truck stands (a temporary
+   node): either way it goes on along that edge (the heading is the edge's, not the cancelled leg's).
+   Accepted: node and edge states of the new order, the action states of its actions (WAITING; earlier
+   action states go, running instant actions stay), the first node traversed at once.
 
 A rejection is a WARNING naming `headerId`, `topic`, `orderId`, `orderUpdateId` and what is at fault
 (`node.nodeId`, `edge.edgeId`, `actionId`, `actionParameter`, `field`); rejections are reported until an
@@ -49,6 +53,7 @@ from palletpilot.executor.apps.vda5050.actions import (
     ActionTable,
     check_parameters,
 )
+from palletpilot.executor.apps.vda5050.midedge import OnEdge
 from palletpilot.executor.apps.vda5050.models import (
     INSTANT_ACTION_ERROR,
     NO_ORDER_TO_CANCEL,
@@ -77,8 +82,8 @@ MAX_RECEIVED = 16
 @dataclass(frozen=True)
 class VehicleView:
     """What the acceptance flow needs of the truck: its pose (map frame, m and rad), the heading it drives
-    off with (rad: along its node's axis), whether the forks carry a load, whether it charges, and a FATAL
-    fault if any."""
+    off with (rad: along its node's axis), whether the forks carry a load, whether it charges, a FATAL
+    fault if any, and the roadmap edge it stands on part way (`midedge.OnEdge`), if any."""
 
     x: float
     y: float
@@ -87,6 +92,8 @@ class VehicleView:
     loaded: bool = False
     charging: bool = False
     fault: str | None = None
+    on_edge: OnEdge | None = None
+    """Where the truck stands part way along a roadmap edge out of lastNodeId (after a cancel), if it does."""
 
 
 @dataclass(frozen=True)
@@ -236,8 +243,21 @@ class OrderManager:
             heading = view.heading if join == 0 else self.routes.roadmap.edge(self.rm[join - 1], self.rm[join]).yaw_end
         else:  # a new order, or an update after a cancel (the stitching node is lastNodeId)
             nodes, edges, known, heading = list(order.nodes), list(order.edges), [], view.heading
+        on = view.on_edge if kind == "new" and self._starts_on_edge(first, view.on_edge) else None
+        if on is not None:  # section 6.6.3.1: from lastNodeId (wide deviation) or a node where the truck stands
+            known, heading = [on.start], self.routes.roadmap.edge(on.start, on.end).yaw_start
         loaded = self._loaded_at_join(view.loaded)
         checked = self.routes.check(nodes, edges, known, heading, loaded)
+        if kind == "new" and checked.rm[0] is not None:  # the real cause first: not where the truck stands
+            problem = self.routes.stands_at(first, checked.rm[0], view.x, view.y, view.theta)
+            if problem is not None:
+                return self._reject(NO_ROUTE_ERROR, "the order does not start where the truck stands", refs, [problem])
+        if on is not None and len(nodes) > 1 and checked.rm[1] != on.end:
+            why = (
+                f"the truck stands on edge '{on.start}->{on.end}', {on.s:.2f} m past '{on.start}', and cannot turn "
+                f"on the spot: an order from there goes on along that edge to '{on.end}'"
+            )
+            checked.no_route.insert(0, (why, [("node.nodeId", first.node_id)]))
         if checked.no_route:
             return self._reject(
                 NO_ROUTE_ERROR, "no route for the order on this truck's roadmap", refs, checked.no_route
@@ -254,12 +274,16 @@ class OrderManager:
         if problems:
             return self._reject(ORDER_ERROR, "the order asks for what this truck cannot do", refs, problems)
         rm = [r for r in checked.rm if r is not None]
-        if kind == "new":
-            problem = self.routes.stands_at(first, rm[0], view.x, view.y, view.theta)
-            if problem is not None:
-                return self._reject(NO_ROUTE_ERROR, "the order does not start where the truck stands", refs, [problem])
         self._accept(order, kind, nodes, edges, rm, join)
         return Decision(kind)
+
+    def _starts_on_edge(self, first: OrderNode, on: OnEdge | None) -> bool:
+        """A new order starts on the edge the truck stands on: its first node is that edge's start (lastNodeId,
+        its deviation range reaching the truck: `stands_at` checks it) or a node that is not on the roadmap (a
+        temporary node where the truck stands)."""
+        if on is None:
+            return False
+        return first.node_id == on.start or (first.node_id not in self.routes.roadmap and first.position is not None)
 
     def _horizon_action_ids(self) -> set[str]:
         """The action ids of the current horizon (an update replaces them)."""

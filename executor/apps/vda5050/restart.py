@@ -160,6 +160,8 @@ class AgvJournal:
             if record.scope == INSTANT:
                 # cancelOrder and startPause hold after the restart (the truck stands); others are lost
                 done = a.action_type in ("cancelOrder", "startPause") and record.status is A.RUNNING
+                if done and a.action_type == "cancelOrder":
+                    o.cancel()  # it had not deleted the order yet (the truck was still stopping)
                 record.status, record.resume_to = (A.FINISHED if done else A.FAILED), None
                 if not done:
                     record.result = f"interrupted: {RESTARTED}"

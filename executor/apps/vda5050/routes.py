@@ -13,7 +13,7 @@
   alternate with the load on the forks. Edge actions are not supported.
 
 Public API: `RouteChecker`, `Problem`, `DEFAULT_DEVIATION_XY`, `DEFAULT_DEVIATION_THETA`,
-`HEADING_TOLERANCE`, `LIFT_MARGIN_M`, `pallet_name`.
+`HEADING_TOLERANCE`, `LIFT_MARGIN_M`, `pallet_name`, `load_type_names`.
 """
 
 from __future__ import annotations
@@ -48,6 +48,12 @@ def pallet_name(load_type: str) -> str | None:
     """The built-in pallet type of a `loadType` (any case: `eur`, `EPAL`, `industrial`, ...), or None."""
     key = PALLET_ALIASES.get(load_type.lower(), load_type.lower())
     return key if key in BUILTIN_PALLETS else None
+
+
+def load_type_names() -> list[str]:
+    """Every `loadType` an order may name, as the factsheet's loadSets list them: the built-in pallet types,
+    then their aliases in capitals (`EPAL`); orders match them in any case."""
+    return [*BUILTIN_PALLETS, *(alias.upper() for alias in PALLET_ALIASES)]
 
 
 @dataclass
@@ -345,10 +351,11 @@ class RouteChecker:
                 )
         load_type = a.param("loadType")
         if isinstance(load_type, str) and pallet_name(load_type) is None:
-            known = ", ".join((*BUILTIN_PALLETS, *PALLET_ALIASES))
+            known = ", ".join(load_type_names())
             out.append(
                 (
-                    f"action '{a.action_id}': loadType '{load_type}' is not a known pallet type ({known})",
+                    f"action '{a.action_id}': loadType '{load_type}' is not a pallet type of this truck (the "
+                    f"factsheet's loadSets: {known}; any case)",
                     [*refs, ("actionParameter", "loadType")],
                 )
             )

@@ -29,7 +29,7 @@ from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.apps.vda5050.actions import CATALOGUE, LOAD_HANDLING_DEVICE
 from palletpilot.executor.apps.vda5050.models import AgvError, ConnectionState, ErrorLevel, EStop, OperatingMode
 from palletpilot.executor.apps.vda5050.orders import OrderManager
-from palletpilot.executor.apps.vda5050.routes import LIFT_MARGIN_M
+from palletpilot.executor.apps.vda5050.routes import LIFT_MARGIN_M, load_type_names, pallet_name
 from palletpilot.executor.apps.vda5050.validation import Headers
 from palletpilot.executor.ports import vocabulary
 from palletpilot.perception.specs import BUILTIN_PALLETS, PalletType
@@ -221,17 +221,19 @@ class Messages:
         )
         mast = p.mast
         load_sets = []
-        for name in BUILTIN_PALLETS:
+        for load_type in load_type_names():  # every name an order's loadType may use (routes.pallet_name)
+            name = pallet_name(load_type) or load_type
+            alias = "" if name == load_type else f" ({load_type}: the same as {name})"
             pallet = PalletType.model_validate(BUILTIN_PALLETS[name])
             load_sets.append(
                 {
-                    "setName": name.upper(),
-                    "loadType": name,
+                    "setName": load_type.upper(),
+                    "loadType": load_type,
                     "loadPositions": [LOAD_HANDLING_DEVICE],
                     "loadDimensions": {"length": pallet.length, "width": pallet.width, "height": pallet.height},
                     "minLoadhandlingHeight": mast.min_height,
                     "maxLoadhandlingHeight": round(mast.max_height - LIFT_MARGIN_M, 3),
-                    "description": pallet.name,
+                    "description": f"{pallet.name}{alias}; loadType in any case",
                 }
             )
         timing: dict[str, Any] = {

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ from palletpilot.control.mpc import MpcConfig, MpcFollower
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.adapters.local_perception import LocalPerception
 from palletpilot.executor.apps.vda5050.config import Loaded
-from palletpilot.executor.core.clock import Clock, WallClock
+from palletpilot.executor.core.clock import CONTROL_DT, Clock, WallClock
 from palletpilot.executor.ports import PerceptionService, VehiclePort
 from palletpilot.geometry import PalletpilotError
 from palletpilot.perception.frames import FrameBundle
@@ -99,9 +100,12 @@ def sim_backend(
     scenario_path: str | Path,
     labels: str = "fused",
     seed: int | None = None,
+    speed: float = 1.0,
 ) -> Backend:
     """The simulated warehouse of a scenario on the wall clock (its map must be the config's); `labels` as
-    `run --labels` (`executor.app.Labels`)."""
+    `run --labels` (`executor.app.Labels`). `speed`: simulated seconds per wall-clock second at most (each tick
+    steps the simulator by the control period; away from 1 there is no wall-clock solve deadline for the MPC
+    and no late tick: the simulation runs as fast as the machine allows up to `speed`)."""
     from palletpilot.executor.adapters.local_perception import LocalPerception
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.sim.faults import FaultInjector
@@ -139,11 +143,17 @@ def sim_backend(
     perception = injector.perception(LocalPerception(sim.forks, sim.pallet_type, segmenter=segmenter, labels=mode))
     follower = MpcFollower(loaded.vehicle, MpcConfig())
     follower.step_fault = injector.step_failure
+    wall = WallClock(step=step)
+    if speed != 1.0:  # as fast as the machine allows up to `speed`: no wall-clock deadline, no late tick
+        wall = WallClock(dt=CONTROL_DT / speed, step=lambda _: step(CONTROL_DT), overrun_s=math.inf)
+        follower.mpc.solve_deadline_s = None
+    clock = TickClock(wall, now=lambda: sim.time)
+    clock.dt = CONTROL_DT  # what a tick means to the runner and the AGV: simulated seconds
     return Backend(
         vehicle=injector.vehicle,
         perception=perception,
         grab=grab,
-        clock=TickClock(WallClock(step=step), now=lambda: sim.time),
+        clock=clock,
         params=loaded.vehicle,
         forks=sim.forks,
         follower=follower,
