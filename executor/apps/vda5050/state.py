@@ -52,6 +52,36 @@ def reason_level(reason: str) -> ErrorLevel:
     return ErrorLevel.FATAL if reason in FATAL_REASONS else ErrorLevel.WARNING
 
 
+def _optional_parameters() -> list[dict[str, str]]:
+    """The factsheet's optionalParameters: the order fields the AGV honours."""
+    supported = [
+        "order.nodes.nodePosition",
+        "order.nodes.nodePosition.theta",
+        "order.nodes.nodePosition.allowedDeviationXY",
+        "order.nodes.nodePosition.allowedDeviationTheta",
+        "order.edges.maxSpeed",
+        "order.edges.maxHeight",
+        "order.edges.minHeight",
+        "order.edges.orientation",
+        "order.edges.orientationType",
+        "order.edges.rotationAllowed",
+        "order.edges.maxRotationSpeed",
+        "order.edges.length",
+        "order.edges.corridor",
+    ]
+    optional = [{"parameter": name, "support": "SUPPORTED"} for name in supported]
+    optional.append(
+        {
+            "parameter": "order.edges.trajectory",
+            "support": "SUPPORTED",
+            "description": (
+                "accepted when it lies on the roadmap edge's curve (within 5 cm): the truck drives the roadmap"
+            ),
+        }
+    )
+    return optional
+
+
 @dataclass(frozen=True)
 class Snapshot:
     """The truck at one control tick (SI units, map frame)."""
@@ -189,37 +219,9 @@ class Messages:
         """A connection message (ONLINE, OFFLINE, or CONNECTIONBROKEN for the last will)."""
         return {**self.headers.header("connection"), "connectionState": state.value}
 
-    def factsheet(self, software_version: str = "") -> dict[str, Any]:
-        """The factsheet: from the vehicle file and the supported actions (`actions.CATALOGUE`)."""
-        p = self.params
-        body = p.body
-        length = self.fork_length - body.rear_x
-        supported = [
-            "order.nodes.nodePosition",
-            "order.nodes.nodePosition.theta",
-            "order.nodes.nodePosition.allowedDeviationXY",
-            "order.nodes.nodePosition.allowedDeviationTheta",
-            "order.edges.maxSpeed",
-            "order.edges.maxHeight",
-            "order.edges.minHeight",
-            "order.edges.orientation",
-            "order.edges.orientationType",
-            "order.edges.rotationAllowed",
-            "order.edges.maxRotationSpeed",
-            "order.edges.length",
-            "order.edges.corridor",
-        ]
-        optional = [{"parameter": name, "support": "SUPPORTED"} for name in supported]
-        optional.append(
-            {
-                "parameter": "order.edges.trajectory",
-                "support": "SUPPORTED",
-                "description": (
-                    "accepted when it lies on the roadmap edge's curve (within 5 cm): the truck drives the roadmap"
-                ),
-            }
-        )
-        mast = p.mast
+    def _load_sets(self) -> list[dict[str, Any]]:
+        """The factsheet's loadSets: one per name an order's loadType may use (`routes.pallet_name`)."""
+        mast = self.params.mast
         load_sets = []
         for load_type in load_type_names():  # every name an order's loadType may use (routes.pallet_name)
             name = pallet_name(load_type) or load_type
@@ -236,6 +238,16 @@ class Messages:
                     "description": f"{pallet.name}{alias}; loadType in any case",
                 }
             )
+        return load_sets
+
+    def factsheet(self, software_version: str = "") -> dict[str, Any]:
+        """The factsheet: from the vehicle file and the supported actions (`actions.CATALOGUE`)."""
+        p = self.params
+        body = p.body
+        length = self.fork_length - body.rear_x
+        optional = _optional_parameters()
+        mast = p.mast
+        load_sets = self._load_sets()
         timing: dict[str, Any] = {
             "minOrderInterval": 0.1,
             "minStateInterval": 0.05,
