@@ -305,6 +305,13 @@ class EstimatePallet(Behaviour):
         ctx.log("pallet_estimate", **entry)
         if al.aligned:
             return "aligned"
+        if not ctx.settings.adapt:  # `--no-adapt`: no re-plan, so never entered as it stands
+            raise TaskFailed(
+                SAFETY_CHECK_FAILED,
+                "without adaptation (--no-adapt) the forks would not go into the pockets of the pallet as it "
+                f"stands ({entry['lateral_mm']} mm lateral, {entry['longitudinal_mm']} mm along, "
+                f"{entry['yaw_deg']} deg off node '{ctx.pallet_node}'): " + "; ".join(al.problems),
+            )
         if ctx.attempts >= ctx.settings.max_attempts:
             raise TaskFailed(
                 STILL_MISALIGNED,
