@@ -39,9 +39,10 @@ MODES = ("adaptive", "adaptive_truth", "no_adapt", "paper")
 LABELS = ("fused", "geometry", "model")
 """`--labels` of the adaptive mode (`perception.labels_mode`)."""
 RACK_DEEPER_MAX_M = 0.13
-"""A rack pallet stands at most this much deeper than its node: further, the mast would meet the rack
-beam before the fork tips reach the back blocks (`Settings.rack_overrun` + the far tolerance), and the
-Pickup refuses it (`no_feasible_approach`) rather than touch the rack."""
+"""A rack pallet stands at most this much deeper than its node: the range the bench has always drawn, so
+its figures stay comparable. The Pickup takes deeper ones while the forks carry the pallet type's minimum
+engagement (`executor.core.engagement`: about 0.39 m for an EUR pallet with the example forks) and refuses
+the rest (`no_feasible_approach`) rather than touch the rack."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
