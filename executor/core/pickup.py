@@ -310,8 +310,8 @@ class EstimatePallet(Behaviour):
         if not ctx.settings.adapt:  # `--no-adapt`: no re-plan, so never entered as it stands
             raise TaskFailed(
                 SAFETY_CHECK_FAILED,
-                "without adaptation (--no-adapt) the forks would not go into the pockets of the pallet as it "
-                f"stands ({entry['lateral_mm']} mm lateral, {entry['longitudinal_mm']} mm along, "
+                "without adaptation (--no-adapt) the truck does not re-plan, and the forks do not fit the pallet "
+                f"as it stands ({entry['lateral_mm']} mm lateral, {entry['longitudinal_mm']} mm along, "
                 f"{entry['yaw_deg']} deg off node '{ctx.pallet_node}'): " + "; ".join(al.problems),
             )
         if ctx.attempts >= ctx.settings.max_attempts:
