@@ -51,8 +51,18 @@ PALLET_RANGES_M: dict[str, tuple[float, float, str]] = {
     "block_length": (0.03, 1.0, "blocks along x"),
     "block_columns": (0.02, 1.0, "each block column"),
     "bottom_board_thickness": (0.005, 0.1, "bottom boards"),
+    "balance_margin": (0.0, 0.5, "the load's centre of mass inside the fork tips"),
 }
 """Plausible pallet dimensions (m): (lowest, highest, what it is); tuples: each element."""
+
+MIN_FORK_ENGAGEMENT = 2.0 / 3.0
+"""The share of a pallet's length (along the pockets) the forks must carry by default: warehouse rules
+commonly ask for two thirds of the load's depth (`PalletType.min_fork_engagement`)."""
+ENGAGEMENT_SHARE_RANGE = (0.5, 1.0)
+"""`min_fork_engagement` lies within this: below half the load's depth its middle is not over the forks."""
+BALANCE_MARGIN_M = 0.05
+"""m: by default the load's centre of mass (the pallet's middle) lies at least this far inside the fork
+tips (`PalletType.balance_margin`)."""
 
 
 PartKind = Literal["top_board", "cross_board", "block", "bottom_board"]
@@ -124,6 +134,14 @@ class PalletType(FileModel):
         None, description="a family whose entry side varies within `ranges` (perception.pallet_family); none: exact"
     )
     ranges: FamilyRanges | None = Field(None, description="the family's ranges (m) around the fields above")
+    min_fork_engagement: FileNumber = Field(
+        MIN_FORK_ENGAGEMENT,
+        description="the share of `length` the forks must carry (0.5..1; default 2/3, a common warehouse rule)",
+    )
+    balance_margin: FileNumber = Field(
+        BALANCE_MARGIN_M,
+        description="m (0..0.5): the load's centre of mass (the pallet's middle) this far inside the fork tips",
+    )
 
     @field_validator(*(k for k in PALLET_RANGES_M if k != "bottom_board_thickness"))
     @classmethod
@@ -228,6 +246,28 @@ class PalletType(FileModel):
         if problems:
             raise PydanticCustomError("dimensions", "; ".join(p.removeprefix("ranges.") for p in problems))
         return ranges
+
+    @field_validator("min_fork_engagement")
+    @classmethod
+    def _engagement_share(cls, share: float) -> float:
+        lo, hi = ENGAGEMENT_SHARE_RANGE
+        if not lo <= share <= hi:
+            raise PydanticCustomError(
+                "out_of_range",
+                f"{share:g} is outside {lo:g}..{hi:g} (the share of the pallet's length the forks carry)",
+            )
+        return share
+
+    def required_engagement(self) -> tuple[float, str]:
+        """How deep (m) the fork tips must reach into the pallet from its entry face, and which rule sets it:
+        `min_fork_engagement` of its `length`, or the balance (the load's centre of mass, the pallet's middle,
+        `balance_margin` inside the tips), whichever asks more."""
+        share = self.min_fork_engagement * self.length
+        balance = 0.5 * self.length + self.balance_margin
+        if balance > share:
+            middle, margin = 0.5e3 * self.length, self.balance_margin * 1e3
+            return balance, f"the load's centre of mass at {middle:.0f} mm plus the {margin:.0f} mm balance margin"
+        return share, f"{self.min_fork_engagement:.2f} of its {self.length * 1e3:.0f} mm depth (min_fork_engagement)"
 
     @model_validator(mode="after")
     def _closed_deck_has_no_boards(self) -> PalletType:

@@ -126,11 +126,17 @@ def test_rack_pickup_at_height(tmp_path, run_mission):
     assert abs(float(rows[-1]["fork_height_m"]) - mast.travel_height_loaded) < 0.005
 
 
-@pytest.mark.parametrize(("deeper_m", "picked"), [(0.12, True), (0.25, False)])
-def test_a_pallet_deep_in_a_rack_is_entered_only_as_far_as_the_mast_allows(tmp_path, deeper_m, picked):
+@pytest.mark.parametrize(("deeper_m", "engagement", "picked"), [(0.12, None, True), (0.25, 0.9, False)])
+def test_a_pallet_deep_in_a_rack_is_entered_only_as_far_as_the_mast_allows(tmp_path, deeper_m, engagement, picked):
     # The rack's front beam stands 0.22 m past the node's heels before the mast (0.12 m behind the heels)
-    # meets it: the truck goes at most Settings.rack_overrun (0.10 m) past the node.
+    # meets it: the truck goes at most Settings.rack_overrun (0.10 m) past the node. 0.25 m deeper, the tips
+    # reach about 950 mm into the pallet: enough for the default two thirds (tests/test_fork_engagement.py),
+    # not for a pallet type that asks for 0.9 of its 1200 mm.
     sc = scenario("a1", [{"node": "rack_a2", "dx": deeper_m, "dy": 0.05, "loaded": True}])
+    task = {"type": "pickup", "node": "rack_a2"}
+    if engagement is not None:  # an EUR pallet whose warehouse asks for more of its depth on the forks
+        (tmp_path / "strict.yaml").write_text(f"min_fork_engagement: {engagement}\n")
+        task["pallet_type"] = str(tmp_path / "strict.yaml")
     poses = []
 
     def record_true_poses(runner):
@@ -142,7 +148,7 @@ def test_a_pallet_deep_in_a_rack_is_entered_only_as_far_as_the_mast_allows(tmp_p
 
         runner.clock.tick = traced
 
-    r = run(tmp_path, [{"type": "pickup", "node": "rack_a2"}], sc, on_start=record_true_poses)
+    r = run(tmp_path, [task], sc, on_start=record_true_poses)
     assert r.sim.collisions == []
     assert r.success is picked and r.sim.pallets[0].carried is picked, r.runner.results[0].message
     node = r.runner.ctx.roadmap.node("rack_a2").pose
@@ -151,6 +157,8 @@ def test_a_pallet_deep_in_a_rack_is_entered_only_as_far_as_the_mast_allows(tmp_p
     if not picked:
         result = r.runner.results[0]
         assert result.reason == "no_feasible_approach" and "deeper in the rack" in (result.message or "")
+        # what it could reach, and what the pallet needs (0.9 of 1200 mm)
+        assert "could then reach 9" in result.message and "it needs 1080 mm" in result.message, result.message
 
 
 def test_pickup_then_delivery(tmp_path):

@@ -65,6 +65,9 @@ def test_builtin_types_match_the_bundled_files_and_eur_is_the_default() -> None:
         ({"deck": "slats"}, "deck: Input should be 'boards', 'across' or 'closed'"),
         ({"bottom_boards": "perimeter", "bottom_board_thickness": 0.0}, "bottom_board_thickness: 0 m is outside"),
         ({"material": "steel"}, "material: Input should be 'wood' or 'plastic'"),
+        ({"min_fork_engagement": 0.3}, "min_fork_engagement: 0.3 is outside 0.5..1 (the share of the pallet's"),
+        ({"min_fork_engagement": "two thirds"}, "min_fork_engagement: "),
+        ({"balance_margin": -0.1}, "balance_margin: -0.1 m is outside 0..0.5 m"),
     ],
 )
 def test_bad_pallet_type_files(tmp_path: Path, changes: dict, words: str) -> None:

@@ -358,7 +358,7 @@ def _execute(
     with contextlib.ExitStack() as stack:
         if recorder is not None:  # the file finished, the port freed, however the run ends
             stack.callback(recorder.close)
-        perception, grab = _perception(sim, injector, recorder, stack, options)
+        perception, grab = _perception(sim, injector, recorder, stack, options, camera=not settings.paper_baseline)
         start_s = point.t if point is not None else 0.0
         clock: Clock = WallClock(step=step, start_s=start_s) if wall else SimClock(step, start_s=start_s)
         events = open_events(folder, stack, append=point is not None)
@@ -396,12 +396,18 @@ def _follower(vehicle: VehicleParams, wall: bool, injector: FaultInjector) -> Mp
 
 
 def _perception(
-    sim: Simulator, injector: FaultInjector, recorder: Recorder | None, stack: contextlib.ExitStack, options: RunOptions
+    sim: Simulator,
+    injector: FaultInjector,
+    recorder: Recorder | None,
+    stack: contextlib.ExitStack,
+    options: RunOptions,
+    camera: bool = True,
 ) -> tuple[PerceptionService | None, Callable[[], FrameBundle]]:
-    """Perception of a simulated run (None without `adapt`) and the camera's `grab`: in process, or the
-    service (`remote`, `serve-local`), stopped with `stack` however the run ends; see `_local_perception`."""
-    perception, grab = _local_perception(sim, injector, recorder, options.adapt, options.labels, options.perception)
-    if options.adapt and options.perception != "local":
+    """Perception of a simulated run and the camera's `grab`: in process, or the service (`remote`,
+    `serve-local`), stopped with `stack` however the run ends; see `_local_perception`. None only without
+    `camera` (the bench's paper baseline): `--no-adapt` keeps the camera's checks."""
+    perception, grab = _local_perception(sim, injector, recorder, camera, options.labels, options.perception)
+    if camera and options.perception != "local":
         from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
 
         service = remote_perception(
@@ -420,16 +426,16 @@ def _local_perception(
     sim: Simulator,
     injector: FaultInjector,
     recorder: Recorder | None,
-    adapt: bool,
+    camera: bool,
     labels: Labels,
     perception_mode: PerceptionMode,
 ) -> tuple[PerceptionService | None, Callable[[], FrameBundle]]:
-    """In-process perception of a simulated run (None without `adapt` or with a service) and the camera's
+    """In-process perception of a simulated run (None without `camera` or with a service) and the camera's
     `grab`: without the simulator's labels unless `labels` is `truth`, segmented by the shipped model in
     this process for `fused` and `model` (a service segments with its own)."""
     perception: PerceptionService | None = None
     grab: Callable[[], FrameBundle] = injector.grab
-    if not adapt:
+    if not camera:
         return perception, grab
     segmenter = None
     if labels != SIM_TRUTH:  # the truck's view: no labels from the simulator

@@ -335,7 +335,11 @@ def _add_run(sub: Any) -> None:
     run.add_argument("--scenario", help="scenario file (default: the default simulated warehouse)")
     run.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     run.add_argument("--report", type=out_folder, help="report folder (default out/run)")
-    run.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
+    run.add_argument(
+        "--no-adapt",
+        action="store_true",
+        help="no re-plan; the camera still checks the entry (a pallet the forks do not fit is refused)",
+    )
     add_labels_argument(run, sim=True)
     run.add_argument(
         "--perception",
@@ -371,7 +375,7 @@ def _add_examples_and_mission(sub: Any) -> None:
     mission = sub.add_parser("mission", help="mission tools")
     mission_sub = mission.add_subparsers(dest="mission_command", required=True)
     diagram = mission_sub.add_parser("diagram", help="draw a task type's state machine (mermaid)")
-    diagram.add_argument("task", help="pickup, pickup_no_adapt, delivery, move, charge, wait")
+    diagram.add_argument("task", help="pickup, pickup_no_adapt, pickup_paper, delivery, move, charge, wait")
     diagram.add_argument("--out", type=out_file(), help="file to write (default: stdout)")
     diagram.set_defaults(func=cmd_mission_diagram)
 

@@ -163,7 +163,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--wait", type=number(0.0, 600.0, "s"), default=5.0, help="wait this long for the truck's topics (s)"
     )
-    p.add_argument("--no-adapt", action="store_true", help="the paper's original Pickup: no camera")
+    p.add_argument(
+        "--no-adapt",
+        action="store_true",
+        help="no re-plan; the camera still checks the entry (a pallet the forks do not fit is refused)",
+    )
     add_labels_argument(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no live progress")

@@ -121,11 +121,15 @@ def load_inputs(
             stale = calibration_problem(Path(cal_path), config.calibration.max_age_days)
             if stale is not None:
                 problems.append(stale)
-        if mission is not None and adapt and config.camera.source == "none":
-            if any(t.type in ("pickup", "delivery") for t in mission.tasks):
+        if mission is not None and config.camera.source == "none":
+            # Every pickup looks before the forks go in, --no-adapt too; a delivery without adaptation may
+            # check its slot with the beams alone.
+            looking = ("pickup", "delivery") if adapt else ("pickup",)
+            if any(t.type in looking for t in mission.tasks):
                 problems.append(
-                    f"{robot_path}: camera.source: none, but the mission's pickups and deliveries look with the "
-                    "camera (give a camera, or run with --no-adapt)"
+                    f"{robot_path}: camera.source: none, but the mission's "
+                    f"{'pickups and deliveries look' if adapt else 'pickups look'} with the camera before the "
+                    "forks go in (give a camera)"
                 )
     raise_problems(problems, RobotError)
     assert mission is not None and roadmap is not None and config is not None
@@ -204,7 +208,7 @@ def run_robot(
         t_end = time.monotonic() + (wait_s if not problems else 0.0)
         while camera is not None and camera.problems() and time.monotonic() < t_end:
             time.sleep(0.05)
-        problems += camera.problems() if camera is not None and adapt else []
+        problems += camera.problems() if camera is not None else []  # --no-adapt looks with it too
         raise_problems([f"{config.source}: {p}" for p in problems], RobotError)
         node = start_node(inputs.roadmap, vehicle.localization(), start)
         validate_mission(inputs.mission, inputs.roadmap, inputs.params, node, str(mission_path))
@@ -262,7 +266,8 @@ def _execute(
     config, mission = inputs.config, inputs.mission
     settings = settings or Settings()
     settings.adapt = adapt
-    perception = _perception(inputs, stack, adapt, perception_mode, perception_connect, labels)
+    looks = adapt or config.camera.source != "none"  # --no-adapt looks with the camera where there is one
+    perception = _perception(inputs, stack, looks, perception_mode, perception_connect, labels)
     folder = Path(report_dir).resolve() if report_dir is not None else None
     recorder: Recorder | None = None  # started once the report folder is clean
 
@@ -306,22 +311,23 @@ def _execute(
 def _perception(
     inputs: Inputs,
     stack: contextlib.ExitStack,
-    adapt: bool,
+    looks: bool,
     perception_mode: str,
     perception_connect: Sequence[str],
     labels: LabelsMode,
 ) -> PerceptionService | None:
     """The truck's perception: in process (the shipped model unless `geometry`, the robot's calibration as
-    the last good one), the perception service (stopped with `stack`), or none without `adapt`."""
+    the last good one), the perception service (stopped with `stack`), or none when nothing `looks` (a
+    `--no-adapt` run without a camera, whose mission has no pickup: `load_inputs`)."""
     from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
     from palletpilot.perception.specs import PalletType
 
-    if adapt and perception_mode == "local":
+    if looks and perception_mode == "local":
         segmenter = None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL)
         local = LocalPerception(inputs.forks, PalletType.eur(), segmenter=segmenter, labels=labels)
         local.calibrator.last_good = inputs.calibration
         return local
-    if not adapt:
+    if not looks:
         return None
     from palletpilot.executor.adapters.zenoh.perception_remote import remote_perception
 

@@ -108,7 +108,12 @@ class Settings:
     # After a failed task, leave for the nearest parking node (the mission's `return_on_failure` decides;
     # this is the default when the mission says nothing).
     return_on_failure: bool = False
+    # False (`--no-adapt`): no re-plan; the camera still calibrates, estimates and checks the entry, and a
+    # pallet the forks do not fit as it stands is refused (`safety_check_failed`).
     adapt: bool = True
+    # With `adapt` False: the paper's original Pickup, beams only, no camera. A baseline for `bench missions`
+    # alone: no command that drives a truck (run, robot, agv) sets it.
+    paper_baseline: bool = False
     # The mission's pallet stands within this envelope of its node (m, m, deg); an estimate outside it is
     # another pallet or object (`pallet_not_found`), never a reason to re-plan there. Between two estimates
     # of one pickup the pallet does not move: a jump beyond `estimate_jump` (m) is another object too.

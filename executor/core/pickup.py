@@ -6,7 +6,8 @@ commanded while perception runs. A result computed from a frame older than the v
 (`ctx.last_motion_s`) is never used: the frame is grabbed again.
 
 Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`,
-`approach_curve`, `approach_route`, `nodes_back`.
+`approach_curve`, `approach_route`, `nodes_back`, `forks_outside_pockets` (the tolerances and the rack's
+limit: `executor.core.engagement`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any
 
 from palletpilot.executor.core.behaviour import Behaviour, Context, TemporaryNodes
 from palletpilot.executor.core.calibration_trust import LAST_GOOD_SOURCE, note_trusted, trusted_axes_only
+from palletpilot.executor.core.engagement import engagement_problems, pickup_tolerances, rack_limited_pose
 from palletpilot.executor.core.entry import MIN_SEEN, RECHECK_S, entry_volume_at
 from palletpilot.executor.core.errors import (
     CALIBRATION_FAILED,
@@ -29,7 +31,7 @@ from palletpilot.executor.core.errors import (
 )
 from palletpilot.executor.core.jobs import Job
 from palletpilot.geometry import SE2, SE3, angle_diff
-from palletpilot.perception.alignment import AlignmentTolerances, check_alignment
+from palletpilot.perception.alignment import check_alignment
 from palletpilot.perception.calibration import CalibrationError
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
@@ -280,7 +282,7 @@ class EstimatePallet(Behaviour):
         _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.estimated_pallet)
         ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
         node = ctx.roadmap.node(ctx.pallet_node)
-        al = check_alignment(est.T_world_pallet, node, _tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
+        al = check_alignment(est.T_world_pallet, node, pickup_tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
         world = est.T_world_pallet.to_se2()
         entry: dict[str, Any] = {
             "problems": list(al.problems),
@@ -305,6 +307,13 @@ class EstimatePallet(Behaviour):
         ctx.log("pallet_estimate", **entry)
         if al.aligned:
             return "aligned"
+        if not ctx.settings.adapt:  # `--no-adapt`: no re-plan, so never entered as it stands
+            raise TaskFailed(
+                SAFETY_CHECK_FAILED,
+                "without adaptation (--no-adapt) the truck does not re-plan, and the forks do not fit the pallet "
+                f"as it stands ({entry['lateral_mm']} mm lateral, {entry['longitudinal_mm']} mm along, "
+                f"{entry['yaw_deg']} deg off node '{ctx.pallet_node}'): " + "; ".join(al.problems),
+            )
         if ctx.attempts >= ctx.settings.max_attempts:
             raise TaskFailed(
                 STILL_MISALIGNED,
@@ -358,44 +367,6 @@ def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:
                 f"the pallet estimate jumped {jump:.2f} m from the previous one (limit {st.estimate_jump:.2f} m): "
                 "another object, not the pallet seen before",
             )
-
-
-def _tolerances(ctx: Context) -> AlignmentTolerances:
-    """The alignment tolerances of this truck's forks and the pallet type, less the Settings' margins."""
-    return AlignmentTolerances.from_geometry(
-        ctx.forks,
-        ctx.pallet_type,
-        lateral_margin_m=ctx.settings.lateral_margin,
-        longitudinal_margin_m=ctx.settings.longitudinal_margin,
-        yaw_limit_deg=ctx.settings.yaw_limit_deg,
-    )
-
-
-def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
-    """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
-    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
-
-    Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would no longer reach the
-    pallet's back row of blocks (the alignment's far tolerance): the mast would meet the rack first.
-    """
-    original = ctx.roadmap.node(ctx.task.node)
-    if original.height <= 0.0:
-        return pallet_node_pose
-    rel = original.pose.inv() @ pallet_node_pose
-    excess = rel.x - ctx.settings.rack_overrun
-    if excess <= 0.0:
-        return pallet_node_pose
-    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
-    far = _tolerances(ctx).longitudinal_far_m
-    if back > far:
-        raise TaskFailed(
-            NO_FEASIBLE_APPROACH,
-            f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
-            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
-            f"tips would then stop {back * 1e3:.0f} mm short (more than the {far * 1e3:.0f} mm that still "
-            "reaches the back blocks)",
-        )
-    return pallet_node_pose @ SE2(-back, 0.0, 0.0)
 
 
 def approach_curve(ctx: Context, spec: TemporaryNodes) -> Curve:
@@ -577,9 +548,13 @@ class SafetyCheck(Behaviour):
                 SAFETY_CHECK_FAILED,
                 f"proximity beams blocked: left {left:.2f} m, right {right:.2f} m, a pocket passes beyond {need:.2f} m",
             )
-        # A clear beam may also pass beside the pallet: with an estimate, each fork must lie in its pocket.
+        # A clear beam may also pass beside the pallet: with an estimate, each fork must lie in its pocket,
+        # and at the pallet node the forks must carry the pallet type's minimum engagement (its balance).
         if ctx.estimated_pallet is not None:
-            problems = forks_outside_pockets(ctx, ctx.estimated_pallet.to_se2(), ctx.vehicle.localization())
+            T_world_pallet = ctx.estimated_pallet.to_se2()
+            problems = forks_outside_pockets(ctx, T_world_pallet, ctx.vehicle.localization())
+            at_node = T_world_pallet.inv() @ pallet.pose
+            problems += engagement_problems(ctx.forks, ctx.pallet_type, at_node, margin=0.0)
             if problems:
                 raise TaskFailed(SAFETY_CHECK_FAILED, "; ".join(problems))
         return "done"

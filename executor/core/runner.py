@@ -46,7 +46,7 @@ from palletpilot.executor.core.mission import Mission
 from palletpilot.executor.core.progress import Progress
 from palletpilot.executor.core.results import TaskResult
 from palletpilot.executor.core.resume import Checkpointer, ResumePoint
-from palletpilot.executor.core.tasks import behaviours, build_machine
+from palletpilot.executor.core.tasks import behaviours, build_machine, pickup_kind
 from palletpilot.executor.core.watchdog import CommandedVehicle, WatchdogLimits, Watchdogs
 from palletpilot.executor.ports import PerceptionService, RunObserver, VehiclePort
 from palletpilot.executor.ports.vocabulary import STAY_STOPPED, Outcome
@@ -230,7 +230,7 @@ class Runner:
 
     def _run_task(self, index: int, task: Any, start_state: str | None) -> TaskResult:
         ctx = self.ctx
-        kind = task.type if task.type != "pickup" or self.settings.adapt else "pickup_no_adapt"
+        kind = pickup_kind(self.settings) if task.type == "pickup" else task.type
         table = behaviours(kind, self.settings)
         node = getattr(task, "node", None)
         result = TaskResult(index, task.type, node, start_s=self.clock.now())

@@ -12,8 +12,10 @@ node, add temporary pallet and pre-pallet nodes from the estimate joined by a fe
 node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`), approach
 the new pre-pallet node (backing to the further node first) and repeat (at most `max_attempts`
 estimates); then the proximity safety check, enter, lift, reverse out, return to the roadmap (through
-the node the temporary nodes are joined to) and remove the temporary nodes. `--no-adapt` runs the
-paper's original Pickup: no camera, only the safety check.
+the node the temporary nodes are joined to) and remove the temporary nodes. `--no-adapt` does not
+re-plan but keeps the camera's checks (calibrate, estimate, refuse a pallet the forks do not fit as it
+stands, the entry volume, the safety check); the paper's original Pickup (no camera, beams only) is
+`pickup_paper`, a baseline for `bench missions` that no truck runs.
 
 Public API: `TASK_SPECS`, `TaskSpec`, `build_machine`, `mermaid`, `behaviours`, and re-exported for
 callers: `Settings`, `Context`, `Behaviour`, `TaskFailed` and the reason codes.
@@ -64,6 +66,7 @@ __all__ = [
     "PALLET_NOT_FOUND",
     "PALLET_NOT_LIFTED",
     "PATH_BLOCKED",
+    "PICKUP_KINDS",
     "SAFETY_CHECK_FAILED",
     "SENSOR_TIMEOUT",
     "SLOT_OCCUPIED",
@@ -80,6 +83,7 @@ __all__ = [
     "behaviours",
     "build_machine",
     "mermaid",
+    "pickup_kind",
 ]
 
 # -- the machines as data ---------------------------------------------------------------------------
@@ -134,7 +138,39 @@ TASK_SPECS: dict[str, TaskSpec] = {
             ("fail", "*", "failed"),
         ),
     ),
+    # `--no-adapt`: no re-plan, but the camera still looks before the forks go in: calibrate, estimate,
+    # and enter only a pallet the forks fit as it stands (`EstimatePallet` refuses a misaligned one).
     "pickup_no_adapt": TaskSpec(
+        (
+            "drive_to_pre_pallet",
+            "calibrate",
+            "raise_forks",
+            "estimate_pallet",
+            "check_entry",
+            "safety_check",
+            "enter",
+            "lift",
+            "reverse_out",
+            "lower_to_travel",
+            *_FINAL,
+        ),
+        (
+            ("done", "drive_to_pre_pallet", "calibrate"),
+            ("done", "calibrate", "raise_forks"),
+            ("done", "raise_forks", "estimate_pallet"),
+            ("aligned", "estimate_pallet", "check_entry"),
+            ("done", "check_entry", "safety_check"),
+            ("done", "safety_check", "enter"),
+            ("done", "enter", "lift"),
+            ("done", "lift", "reverse_out"),
+            ("done", "reverse_out", "lower_to_travel"),
+            ("done", "lower_to_travel", "succeeded"),
+            ("fail", "*", "failed"),
+        ),
+    ),
+    # The paper's original Pickup, beams only, no camera: a baseline for `bench missions` alone
+    # (`Settings.paper_baseline`); no command that drives a truck (run, robot, agv) reaches it.
+    "pickup_paper": TaskSpec(
         (
             "drive_to_pre_pallet",
             "raise_forks",
@@ -176,6 +212,19 @@ TASK_SPECS: dict[str, TaskSpec] = {
     ),
     "wait": TaskSpec(("wait", *_FINAL), (("done", "wait", "succeeded"), ("fail", "*", "failed"))),
 }
+
+
+PICKUP_KINDS = ("pickup", "pickup_no_adapt", "pickup_paper")
+"""The task machines of a mission's `pickup`: adaptive, `--no-adapt` (camera checks, no re-plan) and the
+paper's beams-only baseline (`bench missions` only); `pickup_kind` picks one."""
+
+
+def pickup_kind(settings: Settings) -> str:
+    """The machine a mission's `pickup` task runs under `settings`: `pickup` when it adapts, else
+    `pickup_no_adapt` (the camera's checks stay), `pickup_paper` only for the bench's baseline."""
+    if settings.adapt:
+        return "pickup"
+    return "pickup_paper" if settings.paper_baseline else "pickup_no_adapt"
 
 
 class MachineModel:
@@ -243,7 +292,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
     pallet = lambda ctx: ctx.pallet_node  # noqa: E731
     before = lambda ctx: ctx.node_before or ""  # noqa: E731
     entry_height = lambda ctx: _pallet_height(ctx) + s.fork_clearance  # noqa: E731
-    if task_type in ("pickup", "pickup_no_adapt"):
+    if task_type in PICKUP_KINDS:
         table: dict[str, Callable[[], Behaviour]] = {
             "drive_to_pre_pallet": lambda: FollowRoute(pre),
             "raise_forks": lambda: SetForks(entry_height),
@@ -253,17 +302,22 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             "reverse_out": lambda: FollowRoute(pre, via=_edge_route(pallet, pre)),
             "lower_to_travel": lambda: SetForks(travel_height),
         }
-        if task_type == "pickup":
+        if task_type != "pickup_paper":  # the camera looks before the forks go in
             table.update(
                 {
                     "calibrate": CalibrateCamera,
                     "estimate_pallet": EstimatePallet,
-                    "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
-                    "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
-                    "replan": Replan,
                     "check_entry": lambda: CheckVolume(
                         entry_volume, PATH_BLOCKED, "the pallet's entry volume", fit=entry_pocket_fit
                     ),
+                }
+            )
+        if task_type == "pickup":
+            table.update(
+                {
+                    "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
+                    "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
+                    "replan": Replan,
                     "approach": lambda: FollowRoute(pre, via=approach_route),
                     "return_to_roadmap": ReturnToRoadmap,
                 }

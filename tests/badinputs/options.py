@@ -59,7 +59,7 @@ CASES: list[Case] = [
         "opt_bench_missions_modes_unknown",
         bench("missions", "--modes", "adaptive,fast"),
         2,
-        "--modes: unknown 'fast' (known: adaptive,adaptive_truth,no_adapt)",
+        "--modes: unknown 'fast' (known: adaptive,adaptive_truth,no_adapt,paper)",
     ),
     Case("opt_bench_missions_modes_empty", bench("missions", "--modes", ","), 2, "--modes: empty list"),
     Case("opt_bench_safety_runs_0", bench("safety", "--runs", "0"), 2, "--runs: must be an integer >= 1"),

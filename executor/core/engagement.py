@@ -1,0 +1,126 @@
+"""How deep the forks go into the pallet: the alignment tolerances, the rack's limit and the minimum engagement.
+
+A pallet standing deeper than its rack node can be entered only as far as the mast allows: the truck's
+heels go at most `Settings.rack_overrun` past the node before the mast meets the rack's front beam, so
+the fork tips stop short of where they would reach at the node. That is allowed while the forks still
+carry the pallet type's minimum engagement (`PalletType.required_engagement`: `min_fork_engagement` of
+its length, default two thirds, and the balance: the load's centre of mass, the pallet's middle,
+`balance_margin` inside the tips), with `Settings.longitudinal_margin` for localization and control.
+Where they would not, the Pickup refuses with `no_feasible_approach`, saying how deep the tips could
+reach and what the pallet needs (mm).
+
+At a re-plan's node held back at the rack's limit, the far alignment tolerance is what the engagement
+allows (`pickup_tolerances`); elsewhere it keeps the geometry's (the tips past the back row of blocks),
+so a pallet the truck can reach fully is still re-planned to until it is. Before entering,
+`engagement_problems` checks the depth the forks will reach against the estimate (`SafetyCheck`).
+
+Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from palletpilot.executor.core.behaviour import Context
+from palletpilot.executor.core.errors import NO_FEASIBLE_APPROACH, TaskFailed
+from palletpilot.geometry import SE2
+from palletpilot.perception.alignment import AlignmentTolerances
+from palletpilot.perception.specs import ForkGeometry, PalletType
+
+_AT_LIMIT_M = 1e-3
+"""A node this close (m) to the rack's overrun limit stands at it."""
+
+
+def _geometry_tolerances(ctx: Context) -> AlignmentTolerances:
+    st = ctx.settings
+    return AlignmentTolerances.from_geometry(
+        ctx.forks,
+        ctx.pallet_type,
+        lateral_margin_m=st.lateral_margin,
+        longitudinal_margin_m=st.longitudinal_margin,
+        yaw_limit_deg=st.yaw_limit_deg,
+    )
+
+
+def _at_rack_limit(ctx: Context) -> bool:
+    """True when the current pallet node is a re-plan's node held back at the rack's overrun limit."""
+    original = ctx.roadmap.node(ctx.task.node)
+    if original.height <= 0.0 or not ctx.pallet_node or ctx.pallet_node == original.id:
+        return False
+    rel = original.pose.inv() @ ctx.roadmap.node(ctx.pallet_node).pose
+    return rel.x >= ctx.settings.rack_overrun - _AT_LIMIT_M
+
+
+def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
+    """The alignment tolerances of this truck's forks and the pallet type, less the Settings' margins; at a
+    node held back at the rack's limit the far one is what the minimum engagement allows (m)."""
+    tol = _geometry_tolerances(ctx)
+    if not _at_rack_limit(ctx):
+        return tol
+    need, _ = ctx.pallet_type.required_engagement()
+    engaged_far = tol.reach_m - need - ctx.settings.longitudinal_margin
+    return dataclasses.replace(tol, longitudinal_far_m=max(tol.longitudinal_far_m, engaged_far))
+
+
+def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
+    """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
+    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
+
+    Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would not reach the pallet
+    type's minimum engagement (with the longitudinal margin), naming how deep they could reach (mm).
+    Records `engagement` in the task's report when the tips stop short of the back blocks.
+    """
+    original = ctx.roadmap.node(ctx.task.node)
+    if original.height <= 0.0:
+        return pallet_node_pose
+    rel = original.pose.inv() @ pallet_node_pose
+    excess = rel.x - ctx.settings.rack_overrun
+    if excess <= 0.0:
+        return pallet_node_pose
+    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
+    tol = _geometry_tolerances(ctx)
+    if back <= tol.longitudinal_far_m:
+        return pallet_node_pose
+    pallet = ctx.pallet_type
+    reach = min(tol.reach_m - back, pallet.length)  # how deep the tips go into the pallet, held back
+    need, why = pallet.required_engagement()
+    margin = ctx.settings.longitudinal_margin
+    figures = {
+        "deeper_mm": round(rel.x * 1e3, 1),
+        "reach_mm": round(reach * 1e3, 1),
+        "required_mm": round(need * 1e3, 1),
+        "margin_mm": round(margin * 1e3, 1),
+        "pallet_length_mm": round(pallet.length * 1e3, 1),
+    }
+    ctx.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
+    if reach - margin < need:
+        raise TaskFailed(
+            NO_FEASIBLE_APPROACH,
+            f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
+            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
+            f"tips could then reach {reach * 1e3:.0f} mm into the pallet; it needs {need * 1e3:.0f} mm ({why}) "
+            f"and {margin * 1e3:.0f} mm margin",
+        )
+    ctx.log("short_engagement", **figures)
+    return pallet_node_pose @ SE2(-back, 0.0, 0.0)
+
+
+def tip_depth(forks: ForkGeometry, T_pallet_forklift: SE2) -> float:
+    """How deep (m) the shallower fork tip lies in the pallet, past its entry face, with the truck at
+    `T_pallet_forklift` (the forklift in the pallet frame; x along the pockets from the entry face)."""
+    return min(float(T_pallet_forklift.apply([forks.tip_x, y])[0]) for y in forks.centres_y)
+
+
+def engagement_problems(forks: ForkGeometry, pallet: PalletType, T_pallet_forklift: SE2, margin: float) -> list[str]:
+    """Why the forks, with the truck at `T_pallet_forklift` (where it will stand at the pallet node, in the
+    estimated pallet's frame), would not carry the pallet: too little of its depth for the pallet type's
+    minimum engagement or its balance, with `margin` (m). Empty when they would."""
+    depth = min(tip_depth(forks, T_pallet_forklift), pallet.length)
+    need, why = pallet.required_engagement()
+    if depth - margin >= need:
+        return []
+    return [
+        f"the fork tips would reach {depth * 1e3:.0f} mm into the pallet, it needs {need * 1e3:.0f} mm ({why}) "
+        f"and {margin * 1e3:.0f} mm margin"
+    ]
