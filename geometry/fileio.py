@@ -11,8 +11,9 @@ It lives in `geometry` because that is the one package all others may import.
 example missions, the ONNX model), found through `importlib.resources`, never relative to a source file.
 
 Every output file is written the one way, `write_atomic` (temporary file in the same folder, fsync,
-rename, fsync of the folder): a reader sees the old file or the new one, never a truncated one, and a
-failed write (full disk, no permission) leaves the old file and raises `OutputError` with one line.
+rename, fsync of the folder, mode 0666 minus the umask as `open()` gives): a reader sees the old file
+or the new one, never a truncated one, and a failed write (full disk, no permission) leaves the old
+file and raises `OutputError` with one line.
 JSON output is strict RFC 8259 (`strict_json`, `dumps_json`): NaN and infinities become `null`.
 Dimensions in files: `FileNumber` (a number, never a string or a boolean), `check_ranges` / `range_error`
 (a value outside its plausible range, named with the range).
@@ -204,8 +205,23 @@ def load_yaml_model(path: str | Path, model: type[M], error: type[PalletpilotErr
     return validate_model(read_yaml(path, error), model, str(path), error)
 
 
+def current_umask() -> int:
+    """The process's file mode creation mask, read without changing it where Linux allows (/proc)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)  # elsewhere: set and restore (there is no read-only call)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
-    """Replace `path` with `data` atomically (temp file, fsync, rename); raises `OutputError` on failure."""
+    """Replace `path` with `data` atomically (temp file, fsync, rename); raises `OutputError` on failure.
+
+    The file gets the mode any `open()` would give it, 0666 minus the user's umask (`-rw-r--r--` under
+    umask 022), not mkstemp's private 0600, so a CI server or a colleague can read the reports.
+    """
     path = Path(path)
     payload = data.encode() if isinstance(data, str) else data
     tmp: str | None = None
@@ -214,6 +230,8 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with contextlib.suppress(OSError, AttributeError):  # mkstemp gives 0600; os.fchmod is POSIX only
+            os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(payload)
             f.flush()

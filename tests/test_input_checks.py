@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -154,3 +155,16 @@ def test_a_bad_mission_with_the_default_scenario_names_its_tasks(
     assert main(["run", str(tmp_path / "m.yaml"), "--quiet"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 50 and all("unknown node 'ghost_" in line for line in lines)
+
+
+def test_outputs_follow_the_umask_not_mkstemps_private_mode(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        path = write_atomic(tmp_path / "report.json", "{}")
+        assert stat.filemode(path.stat().st_mode) == "-rw-r--r--"
+        os.umask(0o077)
+        assert stat.filemode(write_atomic(tmp_path / "private.json", "{}").stat().st_mode) == "-rw-------"
+        os.umask(0o002)
+        assert stat.filemode(write_atomic(path, "{}").stat().st_mode) == "-rw-rw-r--"  # a rewrite too
+    finally:
+        os.umask(old)
