@@ -7,6 +7,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import palletpilot
 from palletpilot.executor.apps import cli
@@ -41,9 +42,14 @@ def test_help_and_version_load_no_heavy_library() -> None:
     assert heavy == []
 
 
-def test_plan_loads_no_heavy_library() -> None:
-    rc, _out, heavy = _loaded(["plan", str(cli.bundled_path("missions", "warehouse.yaml")), "nowhere", "either"])
+def test_map_check_plan_and_a_refused_run_load_no_heavy_library(tmp_path: Path) -> None:
+    example = str(cli.bundled_path("missions", "warehouse.yaml"))
+    rc, out, heavy = _loaded(["map", "check", example])
+    assert rc == 0 and "ok" in out and heavy == []  # the vehicle file without CasADi
+    rc, _out, heavy = _loaded(["plan", example, "nowhere", "either"])
     assert rc == 2 and heavy == []
+    rc, _out, heavy = _loaded(["run", str(tmp_path / "missing.yaml")])
+    assert rc == 2 and heavy == ["foxglove"]  # `--foxglove`'s option; no simulator, open3d, CasADi or OpenCV
 
 
 def test_the_table_of_commands_matches_each_commands_own_help() -> None:

@@ -204,7 +204,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run (or resume) a mission in the simulated warehouse; the exit codes are in the module docstring."""
-    from palletpilot.executor.apps.app import resume_simulated, run_simulated
     from palletpilot.executor.core.controls import CONTROLS
 
     progress = None if args.json or args.quiet else sys.stderr
@@ -223,6 +222,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 "run: --resume continues the journal's own run; give it alone (with --json, --quiet)", file=sys.stderr
             )
             return EXIT_BAD_INPUT
+        from palletpilot.executor.apps.app import resume_simulated
+
         result = resume_simulated(args.resume, progress=progress, controls=CONTROLS)
     else:
         if args.demo:
@@ -234,6 +235,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         elif not args.mission:
             print("run: give a MISSION file (or --demo for the bundled demo)", file=sys.stderr)
             return EXIT_BAD_INPUT
+        from palletpilot.executor.core.mission import load_mission
+
+        load_mission(
+            args.mission
+        )  # a bad mission file (the first check of a run) is refused before the simulator loads
+        from palletpilot.executor.apps.app import run_simulated
+
         result = run_simulated(
             args.mission,
             args.scenario,
