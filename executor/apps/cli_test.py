@@ -4,7 +4,8 @@ Runs every case of a mission test suite (`executor.suite`) in the simulator, `--
 at a time (each run is deterministic for its seed, whatever the order), prints a line per finished run
 on stderr, then the summary table (each run that did not meet its case with its reasons and the paths
 to its report and trajectory image); `--junit FILE` writes JUnit XML, `--report DIR` (default
-`test-reports/<suite name>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`.
+`out/test/<suite file's stem>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`;
+the last lines say where both landed.
 
 Exit codes: 0 every run met its case, 1 some did not, 2 a bad suite file or option (one line per
 problem), 3 an output that could not be written.
@@ -24,6 +25,9 @@ from palletpilot.executor.apps.suite import RunSpec, SuiteError, load_suite
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 from palletpilot.geometry.fileio import write_atomic, write_json
+
+DEFAULT_REPORT_ROOT = Path("out") / "test"
+"""Where `palletpilot test` keeps the runs' reports without --report (`out/` is ignored by git)."""
 
 
 def _run_all(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
@@ -53,7 +57,7 @@ def cmd_test(args: argparse.Namespace) -> int:
         known = ", ".join(c.name for c in suite.cases)
         raise SuiteError(f"--only: no case named {', '.join(unknown)} in {args.suite} (cases: {known})")
     specs = suite.runs(only)
-    report = Path(args.report or Path("test-reports") / Path(args.suite).stem).resolve()
+    report = Path(args.report or DEFAULT_REPORT_ROOT / Path(args.suite).stem).resolve()
     report.mkdir(parents=True, exist_ok=True)
     print(
         f"{suite.name}: {len(specs)} runs of {len({s.case for s in specs})} cases, {args.jobs} at a time",
@@ -67,6 +71,10 @@ def cmd_test(args: argparse.Namespace) -> int:
     if args.junit:
         write_atomic(args.junit, junit_xml(suite.name, results, wall_s))
     print(json.dumps(doc, indent=2) if args.json else summary_table(suite.name, results, wall_s))
+    where = sys.stderr if args.json else sys.stdout  # --json: stdout holds the JSON alone
+    print(f"reports: {report}/ (suite.json, CASE/K/report.json)", file=where)
+    if args.junit:
+        print(f"JUnit: {Path(args.junit).resolve()}", file=where)
     return 0 if all(r.met for r in results) else 1
 
 
@@ -76,7 +84,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("suite", metavar="SUITE.yaml", help="the suite file (cases, expectations, checks)")
     p.add_argument("--jobs", type=count(1, 256), default=1, help="worker processes (default 1)")
     p.add_argument("--junit", type=out_file(".xml"), metavar="FILE.xml", help="write JUnit XML")
-    p.add_argument("--report", type=out_folder, metavar="DIR", help="report folder (default test-reports/SUITE)")
+    p.add_argument("--report", type=out_folder, metavar="DIR", help="report folder (default out/test/SUITE)")
     p.add_argument("--only", metavar="NAME[,NAME]", help="run only these cases")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
     p.set_defaults(func=cmd_test)
