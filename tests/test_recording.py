@@ -1,6 +1,7 @@
 """run.mcap: a recorded simulated pickup read back with the `mcap` reader, channel by channel."""
 
 import json
+import logging
 import re
 import socket
 from collections import Counter, defaultdict
@@ -239,3 +240,27 @@ def test_agv_foxglove_port_in_use_is_one_line_exit_2(tmp_path, capsys):
         code = main(["agv", "--config", str(config), *args, "--labels", "truth", "--foxglove", str(port)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and f"--foxglove: cannot serve on 127.0.0.1:{port}" in err[0], err
+
+
+def test_a_viewers_failed_handshake_stays_out_of_the_runs_output(caplog: pytest.LogCaptureFixture) -> None:
+    """A client asking for `foxglove.websocket.v1` is refused by the SDK; the refusal is not printed."""
+    import time
+
+    from palletpilot.executor.adapters.mcap.recording import Recorder
+
+    recorder = Recorder(None, port=0, wall=True)
+    try:
+        port = recorder.port
+        assert port is not None
+        request = (
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n"
+            "Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+            "Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"
+        )
+        with caplog.at_level(logging.DEBUG), socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            sock.sendall(request.encode())
+            assert sock.recv(4096).startswith(b"HTTP/1.1 400")
+            time.sleep(0.5)  # the SDK logs from its own thread
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "handshake" in r.getMessage()]
+    finally:
+        recorder.close()

@@ -81,6 +81,7 @@ from palletpilot.executor.adapters.mcap.recording_channels import (
     add_foxglove_argument,
     finite,
     json_schema,
+    quiet_handshakes,
 )
 from palletpilot.executor.adapters.mcap.recording_events import RecorderEvents
 from palletpilot.executor.adapters.mcap.recording_sim import SimFeed
@@ -166,6 +167,7 @@ class Recorder(RecorderCamera, RecorderEvents):
                 self.errors.append(f"{mcap}: cannot write the recording: {exc}")
         if port is not None:
             try:
+                quiet_handshakes()
                 self._server = foxglove.start_server(name="palletpilot", host=host, port=port, context=self.ctx)
             except Exception as exc:
                 self._shutdown()

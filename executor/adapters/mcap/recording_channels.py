@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 from collections.abc import Callable
 from typing import Any
@@ -164,6 +165,26 @@ class RecordingError(PalletpilotError):
     """The live view cannot start (its port is taken, its host unknown): an input problem."""
 
 
+class _NoHandshakeNoise(logging.Filter):
+    """Drops the SDK's `Dropping client ...: handshake failed` (a viewer asking for another subprotocol,
+    a port scanner): a viewer's problem, printed into the run's progress line by Python's last-resort
+    handler. Every other record of the SDK passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "handshake failed" not in record.getMessage()
+
+
+SERVER_LOGGER = "foxglove.websocket.server"
+"""The logger the foxglove SDK's WebSocket server writes to (through Python logging)."""
+
+
+def quiet_handshakes() -> None:
+    """Keep failed viewer handshakes out of the run's output (idempotent; before the server starts)."""
+    logger = logging.getLogger(SERVER_LOGGER)
+    if not any(isinstance(f, _NoHandshakeNoise) for f in logger.filters):
+        logger.addFilter(_NoHandshakeNoise())
+
+
 def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
     """`--foxglove [PORT]` and `--foxglove-host HOST`: serve the run's channels live over the Foxglove
     WebSocket protocol on HOST:PORT (default 127.0.0.1:8765); for `run` and any command that records a run."""
@@ -173,7 +194,8 @@ def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
         const=FOXGLOVE_PORT,
         type=_port,
         metavar="PORT",
-        help=f"also show the run live in Foxglove (ws://127.0.0.1:PORT, default {FOXGLOVE_PORT}; 0: any free port)",
+        help=f"also show the run live in Foxglove (ws://127.0.0.1:PORT, default {FOXGLOVE_PORT}; 0: any free port; "
+        "the viewer needs the foxglove.sdk.v1 subprotocol; with `run`, --clock wall plays it in real time)",
     )
     parser.add_argument(
         "--foxglove-host",
