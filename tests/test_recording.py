@@ -184,6 +184,50 @@ def test_foxglove_serves_the_channels_live(tmp_path):
     assert not r.success and r.summary["tasks"][0]["reason"] == "cancelled"
 
 
+def test_a_viewer_joining_10_s_into_the_run_gets_the_roadmap(tmp_path):
+    """Latched channels: the roadmap is sent at the start only, yet a late viewer receives it."""
+    import struct
+    import threading
+    import time
+
+    from websockets.sync.client import connect
+
+    port = free_port()
+    got: dict[str, float] = {}
+
+    def join_late(runner) -> None:
+        while runner.clock.now() < 10.0:  # 10 simulated seconds into the run
+            time.sleep(0.05)
+        got["joined_s"] = runner.clock.now()
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+            channels: dict[str, int] = {}
+            while "/scene/roadmap" not in channels or "/roadmap/graph" not in channels:
+                msg = ws.recv(timeout=5)
+                doc = json.loads(msg) if isinstance(msg, str) else {}
+                if doc.get("op") == "advertise":
+                    channels.update({ch["topic"]: ch["id"] for ch in doc["channels"]})
+            subs = {1: "/scene/roadmap", 2: "/roadmap/graph"}
+            ws.send(
+                json.dumps(
+                    {"op": "subscribe", "subscriptions": [{"id": k, "channelId": channels[t]} for k, t in subs.items()]}
+                )
+            )
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not set(subs.values()) <= set(got):
+                msg = ws.recv(timeout=20)
+                if isinstance(msg, bytes) and msg[0] == 1:  # messageData: opcode, subscription id, time, payload
+                    got[subs[struct.unpack_from("<I", msg, 1)[0]]] = len(msg) - 13
+        runner.cancel()
+
+    def on_start(runner) -> None:
+        threading.Thread(target=join_late, args=(runner,), daemon=True).start()
+
+    r = _run(tmp_path, foxglove=port, on_start=on_start)
+    assert got["joined_s"] >= 10.0
+    assert got.get("/scene/roadmap", 0) > 100 and got.get("/roadmap/graph", 0) > 100, got
+    assert r.summary["tasks"][0]["reason"] == "cancelled"
+
+
 def test_foxglove_port_in_use_is_one_line_exit_2(tmp_path, capsys):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
