@@ -5,19 +5,21 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.palletpilot-installed
 OUT    ?= out
-# Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp; the VDA 5050 tests start a
-# mosquitto MQTT broker, and the independent VDA 5050 master (tests/vda_master) needs node and npm (checked by
-# command, not package: a NodeSource nodejs brings its own npm).
-SYSTEM_LIBS := libusb-1.0-0 libgomp1 mosquitto
+# Debian packages the wheels need at run time: Open3D loads libusb-1.0 and libgomp (all `make demo` needs).
+# Only the tests need more: the VDA 5050 tests start a mosquitto MQTT broker, and the independent VDA 5050
+# master (tests/vda_master) needs node and npm (checked by command, not package: a NodeSource nodejs brings
+# its own npm).
+SYSTEM_LIBS := libusb-1.0-0 libgomp1
+TEST_LIBS   := mosquitto
 
-.PHONY: demo test lint setup system-libs clean
+.PHONY: demo test lint setup setup-test system-libs system-libs-test clean
 
 demo: setup
 	$(BIN)/palletpilot map check missions/warehouse.yaml
 	$(BIN)/palletpilot run missions/pickup_delivery.yaml --scenario missions/scenario_demo.yaml --report $(OUT)/demo
 	@echo "demo: report in $(OUT)/demo (report.json, trajectory.png, events.jsonl, trajectory.csv, run.mcap)"
 
-test: setup
+test: setup-test
 	$(BIN)/python -m pytest -q
 
 # Lint, types and import layers (pyproject: [tool.ruff], [tool.mypy], [tool.importlinter]); CI runs it.
@@ -28,15 +30,21 @@ lint: setup
 	$(BIN)/lint-imports
 
 setup: system-libs $(STAMP)
+setup-test: system-libs-test $(STAMP)
 
-system-libs:
-	@missing=""; for p in $(SYSTEM_LIBS); do \
+# The demo's packages; the tests' (system-libs-test) add mosquitto, node and npm.
+system-libs: LIBS := $(SYSTEM_LIBS)
+system-libs: NEED_NODE :=
+system-libs-test: LIBS := $(SYSTEM_LIBS) $(TEST_LIBS)
+system-libs-test: NEED_NODE := 1
+system-libs system-libs-test:
+	@missing=""; for p in $(LIBS); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
 	done; \
 	if ! $(PYTHON) -c "import ensurepip, venv" >/dev/null 2>&1; then \
 	  missing="$$missing python3-venv"; \
 	fi; \
-	if ! command -v node >/dev/null || ! command -v npm >/dev/null; then \
+	if [ -n "$(NEED_NODE)" ] && { ! command -v node >/dev/null || ! command -v npm >/dev/null; }; then \
 	  missing="$$missing nodejs npm"; \
 	fi; \
 	if [ -n "$$missing" ]; then \

@@ -14,12 +14,38 @@ Public API:
 - `ControlError`.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from palletpilot.control.errors import ControlError
-from palletpilot.control.follower import DriveCommand, Follower, FollowerConfig, FollowerStatus, TrackingError
-from palletpilot.control.model import KinematicModel
-from palletpilot.control.mpc import MpcConfig, MpcFollower, MpcWeights
-from palletpilot.control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
 from palletpilot.control.vehicle import BatteryParams, BodyParams, MastParams, VehicleParams, load_vehicle
+
+if TYPE_CHECKING:
+    from palletpilot.control.follower import DriveCommand, Follower, FollowerConfig, FollowerStatus, TrackingError
+    from palletpilot.control.model import KinematicModel
+    from palletpilot.control.mpc import MpcConfig, MpcFollower, MpcWeights
+    from palletpilot.control.pure_pursuit import PurePursuitConfig, PurePursuitFollower
+
+# The model and the followers load CasADi: imported on first use, so that reading a vehicle file
+# (`palletpilot map check`) does not pay for it.
+_LAZY = {
+    **dict.fromkeys(("DriveCommand", "Follower", "FollowerConfig", "FollowerStatus", "TrackingError"), "follower"),
+    "KinematicModel": "model",
+    **dict.fromkeys(("MpcConfig", "MpcFollower", "MpcWeights"), "mpc"),
+    **dict.fromkeys(("PurePursuitConfig", "PurePursuitFollower"), "pure_pursuit"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The followers and the model, imported on first use (PEP 562)."""
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "BatteryParams",

@@ -7,7 +7,8 @@ or frame at fault. The CLI prints the message as one line on stderr and exits wi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import difflib
+from collections.abc import Callable, Iterable
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -53,3 +54,9 @@ def raise_problems(problems: list[str], error: type[PalletpilotError] = Palletpi
     if problems:
         more = len(problems) - 1
         raise error(problems[0] + (f" (and {more} more)" if more else ""), problems)
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """` (did you mean 'pickup'?)` when one of `choices` is close to a mistyped `word` (difflib), else ``."""
+    close = difflib.get_close_matches(word, [c for c in choices if c != word], n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""

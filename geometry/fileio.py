@@ -11,8 +11,9 @@ It lives in `geometry` because that is the one package all others may import.
 example missions, the ONNX model), found through `importlib.resources`, never relative to a source file.
 
 Every output file is written the one way, `write_atomic` (temporary file in the same folder, fsync,
-rename, fsync of the folder): a reader sees the old file or the new one, never a truncated one, and a
-failed write (full disk, no permission) leaves the old file and raises `OutputError` with one line.
+rename, fsync of the folder, mode 0666 minus the umask as `open()` gives): a reader sees the old file
+or the new one, never a truncated one, and a failed write (full disk, no permission) leaves the old
+file and raises `OutputError` with one line.
 JSON output is strict RFC 8259 (`strict_json`, `dumps_json`): NaN and infinities become `null`.
 Dimensions in files: `FileNumber` (a number, never a string or a boolean), `check_ranges` / `range_error`
 (a value outside its plausible range, named with the range).
@@ -26,6 +27,7 @@ import json
 import math
 import os
 import tempfile
+import typing
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -34,7 +36,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo
 from pydantic_core import PydanticCustomError
 
-from palletpilot.geometry.errors import OutputError, PalletpilotError
+from palletpilot.geometry.errors import OutputError, PalletpilotError, did_you_mean
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -111,10 +113,16 @@ def read_text(
         ) from None
 
 
-def _yaml_line(exc: yaml.YAMLError) -> str:
+def _yaml_line(exc: yaml.YAMLError, text: str) -> str:
+    """`line N: what`, naming a tab as a tab (YAML's own message for one says nothing of tabs)."""
     mark = getattr(exc, "problem_mark", None)
-    where = f"line {mark.line + 1}: " if mark is not None else ""
-    return f"{where}{getattr(exc, 'problem', None) or exc}"
+    if mark is None:
+        return str(getattr(exc, "problem", None) or exc)
+    lines = text.splitlines()
+    line = lines[mark.line] if mark.line < len(lines) else ""
+    if (mark.column < len(line) and line[mark.column] == "\t") or "\t" in line[: len(line) - len(line.lstrip())]:
+        return f"line {mark.line + 1}: a tab character (YAML indents with spaces only; replace the tab by spaces)"
+    return f"line {mark.line + 1}: {getattr(exc, 'problem', None) or exc}"
 
 
 def read_yaml(path: str | Path, error: type[PalletpilotError] = PalletpilotError) -> object:
@@ -134,7 +142,7 @@ def read_yaml(path: str | Path, error: type[PalletpilotError] = PalletpilotError
         except yaml.YAMLError as exc:
             if "maximum nesting depth" in str(exc):  # the limit libyaml itself has in recent PyYAML wheels
                 raise error(f"{path}: nested deeper than {MAX_DEPTH} levels") from None
-            raise error(f"{path}: not valid YAML: {_yaml_line(exc)}") from None
+            raise error(f"{path}: not valid YAML: {_yaml_line(exc, text)}") from None
         except RecursionError:
             raise error(f"{path}: not valid YAML: nested too deeply") from None
     check_size(data, str(path), error)
@@ -179,14 +187,59 @@ def check_size(data: object, where: str, error: type[PalletpilotError] = Palletp
         stack.extend((v, depth + 1) for v in values if isinstance(v, (dict, list)))
 
 
-def validation_lines(prefix: str, exc: ValidationError) -> list[str]:
-    """One line per pydantic error: `prefix: nodes[3].yaw_deg: Input should be a valid number`."""
+def _models_in(annotation: Any) -> list[Any]:
+    """The types an annotation may hold, unwrapped from Optional, Union, Annotated, list and dict."""
+    args = typing.get_args(annotation)
+    if not args:
+        return [annotation]
+    if typing.get_origin(annotation) is typing.Annotated:
+        return _models_in(args[0])
+    if typing.get_origin(annotation) is dict:
+        return _models_in(args[-1])
+    return [t for a in args for t in _models_in(a)]
+
+
+def _keys_at(model: Any, loc: tuple[Any, ...]) -> list[str]:
+    """The keys the schema allows where `loc` (a pydantic error's location, less the bad key) points."""
+    current = [model]
+    for part in loc:
+        models = [m for m in current if isinstance(m, type) and issubclass(m, BaseModel)]
+        if isinstance(part, int) or not models:
+            current = [t for c in current for t in _models_in(c)]
+            continue
+        fields = [m.model_fields[part] for m in models if part in m.model_fields]
+        if fields:
+            current = [t for f in fields for t in _models_in(f.annotation)]
+        else:  # a discriminated union's tag (`tasks[2].charge`): the member whose literal field is `part`
+            current = [m for m in models if any(part in typing.get_args(f.annotation) for f in m.model_fields.values())]
+    return [k for m in current if isinstance(m, type) and issubclass(m, BaseModel) for k in m.model_fields]
+
+
+def error_message(err: Any, model: Any) -> str:
+    """A pydantic error's message (`ValidationError.errors()`), with a "did you mean" for a mistyped key or tag."""
+    if err["type"] == "union_tag_invalid":
+        ctx = err["ctx"]
+        known = [t.strip(" '") for t in ctx["expected_tags"].split(",")]
+        hint = did_you_mean(str(ctx["tag"]), known)
+        return f"{ctx['discriminator'].strip(chr(39))} '{ctx['tag']}' is unknown{hint}; known: {', '.join(known)}"
+    if err["type"] == "extra_forbidden" and model is not None and err["loc"]:
+        key = str(err["loc"][-1])
+        return f"{err['msg']}{did_you_mean(key, _keys_at(model, tuple(err['loc'][:-1])))}"
+    return str(err["msg"])
+
+
+def validation_lines(prefix: str, exc: ValidationError, model: Any = None) -> list[str]:
+    """One line per pydantic error: `prefix: nodes[3].yaw_deg: Input should be a valid number`.
+
+    With the `model` that raised it, a mistyped key gets `(did you mean 'name'?)`; a
+    mistyped tag of a tagged union (a task's `type`) names the close one and the known ones.
+    """
     lines = []
     for err in exc.errors():
         loc = ""
         for part in err["loc"]:
             loc += f"[{part}]" if isinstance(part, int) else (f".{part}" if loc else str(part))
-        lines.append(f"{prefix}: {loc or 'file'}: {err['msg']}")
+        lines.append(f"{prefix}: {loc or 'file'}: {error_message(err, model)}")
     return lines
 
 
@@ -195,7 +248,7 @@ def validate_model(data: object, model: type[M], where: str, error: type[Palletp
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        lines = validation_lines(where, exc)
+        lines = validation_lines(where, exc, model)
         raise error(lines[0] if len(lines) == 1 else f"{where}: {len(lines)} problems", lines) from None
 
 
@@ -204,8 +257,23 @@ def load_yaml_model(path: str | Path, model: type[M], error: type[PalletpilotErr
     return validate_model(read_yaml(path, error), model, str(path), error)
 
 
+def current_umask() -> int:
+    """The process's file mode creation mask, read without changing it where Linux allows (/proc)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    mask = os.umask(0o022)  # elsewhere: set and restore (there is no read-only call)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path: str | Path, data: bytes | str) -> Path:
-    """Replace `path` with `data` atomically (temp file, fsync, rename); raises `OutputError` on failure."""
+    """Replace `path` with `data` atomically (temp file, fsync, rename); raises `OutputError` on failure.
+
+    The file gets the mode any `open()` would give it, 0666 minus the user's umask (`-rw-r--r--` under
+    umask 022), not mkstemp's private 0600, so a CI server or a colleague can read the reports.
+    """
     path = Path(path)
     payload = data.encode() if isinstance(data, str) else data
     tmp: str | None = None
@@ -214,6 +282,8 @@ def write_atomic(path: str | Path, data: bytes | str) -> Path:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with contextlib.suppress(OSError, AttributeError):  # mkstemp gives 0600; os.fchmod is POSIX only
+            os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "wb") as f:
             f.write(payload)
             f.flush()

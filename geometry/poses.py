@@ -12,13 +12,23 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry.angles import wrap_angle
 from palletpilot.geometry.errors import GeometryError
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+
+
+def _rotation_class() -> type[Rotation]:
+    """scipy's `Rotation`, imported on first use: SE2 alone (maps, plans, the command line) needs no scipy."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:
@@ -104,7 +114,7 @@ class SE2:
 
     def to_se3(self, z: float = 0.0) -> SE3:
         """Lift to SE3: the same x, y, yaw at height z (m), zero roll and pitch."""
-        return SE3(Rotation.from_euler("z", self.yaw), (self.x, self.y, z))
+        return SE3(_rotation_class().from_euler("z", self.yaw), (self.x, self.y, z))
 
     def distance_to(self, other: SE2) -> float:
         """Euclidean distance (m) between the two positions."""
@@ -129,8 +139,8 @@ class SE3:
         if t.shape != (3,):
             raise GeometryError(f"SE3 translation must have 3 elements, got {t.shape[0]}")
         if rotation is None:
-            rotation = Rotation.identity()
-        elif not isinstance(rotation, Rotation) or not rotation.single:
+            rotation = _rotation_class().identity()
+        elif not isinstance(rotation, _rotation_class()) or not rotation.single:
             raise GeometryError("SE3 rotation must be a single scipy Rotation")
         self._rotation = rotation
         self._translation = _readonly(t)
@@ -159,12 +169,12 @@ class SE3:
         r = m[:3, :3]
         if not np.allclose(r.T @ r, np.eye(3), atol=atol) or np.linalg.det(r) <= 0:
             raise GeometryError("SE3 matrix: rotation block is not a proper rotation")
-        return cls(Rotation.from_matrix(r), m[:3, 3])
+        return cls(_rotation_class().from_matrix(r), m[:3, 3])
 
     @classmethod
     def from_xyz_rpy(cls, xyz: ArrayLike, rpy: ArrayLike) -> SE3:
         """Build from a translation (m) and roll, pitch, yaw (rad; R = Rz(yaw) Ry(pitch) Rx(roll))."""
-        return cls(Rotation.from_euler("xyz", np.asarray(rpy, dtype=float)), xyz)
+        return cls(_rotation_class().from_euler("xyz", np.asarray(rpy, dtype=float)), xyz)
 
     # -- access -------------------------------------------------------------------------
     @property

@@ -21,6 +21,7 @@ import networkx as nx
 import numpy as np
 
 from palletpilot.geometry import SE2, angle_diff
+from palletpilot.geometry.errors import did_you_mean
 from palletpilot.roadmap.curves import Curve, Line, max_abs_curvatures
 from palletpilot.roadmap.errors import RoadmapError
 
@@ -232,7 +233,8 @@ class Roadmap:
         try:
             return self._graph.nodes[node_id]["node"]
         except KeyError:
-            raise RoadmapError(f"{self.source}: unknown node '{node_id}'") from None
+            hint = did_you_mean(str(node_id), [str(n) for n in self._graph.nodes])
+            raise RoadmapError(f"{self.source}: unknown node '{node_id}'{hint}") from None
 
     def edge(self, start: str, end: str) -> Edge:
         """The edge start -> end, or a `RoadmapError` naming it."""

@@ -40,7 +40,7 @@ from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field, StringConstraints, ValidationError
 
-from palletpilot.geometry.fileio import FileModel
+from palletpilot.geometry.fileio import FileModel, error_message
 from palletpilot.roadmap.errors import RoadmapError
 from palletpilot.roadmap.graph import Direction, NodeType, Roadmap
 from palletpilot.roadmap.mapbuild import build_roadmap
@@ -152,7 +152,7 @@ def _schema_lines(where: str, exc: ValidationError) -> list[str]:
         for part in err["loc"]:
             loc += f"[{part}]" if isinstance(part, int) else (f".{part}" if loc else str(part))
         field = next((p for p in reversed(err["loc"]) if isinstance(p, str)), "")
-        msg = err["msg"]
+        msg = error_message(err, MapSpec)
         if err["type"] in ("greater_than_equal", "less_than_equal") and field in _RANGES:
             low, high, unit = _RANGES[field]
             msg = f"must be within {low:g}..{high:g} {unit} (got {err['input']})"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -154,3 +155,52 @@ def test_a_bad_mission_with_the_default_scenario_names_its_tasks(
     assert main(["run", str(tmp_path / "m.yaml"), "--quiet"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 50 and all("unknown node 'ghost_" in line for line in lines)
+
+
+def test_outputs_follow_the_umask_not_mkstemps_private_mode(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        path = write_atomic(tmp_path / "report.json", "{}")
+        assert stat.filemode(path.stat().st_mode) == "-rw-r--r--"
+        os.umask(0o077)
+        assert stat.filemode(write_atomic(tmp_path / "private.json", "{}").stat().st_mode) == "-rw-------"
+        os.umask(0o002)
+        assert stat.filemode(write_atomic(path, "{}").stat().st_mode) == "-rw-rw-r--"  # a rewrite too
+    finally:
+        os.umask(old)
+
+
+def _mission(tmp_path: Path, text: str, name: str = "m.yaml") -> str:
+    """A mission file in a folder beside a copy of the example map and vehicle."""
+    for example in ("warehouse.yaml", "forklift.yaml"):
+        (tmp_path / example).write_bytes((MISSIONS / example).read_bytes())
+    (tmp_path / name).write_text(text)
+    return str(tmp_path / name)
+
+
+def test_mistyped_names_get_a_did_you_mean(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    good = "name: m\nmap: warehouse.yaml\ntasks:\n  - {type: pickup, node: floor_b2}\n"
+    cases = [
+        (good.replace("type: pickup", "type: pickupp"), "tasks[0]: type 'pickupp' is unknown (did you mean 'pickup'?)"),
+        (good.replace("name:", "nmae:"), "nmae: Extra inputs are not permitted (did you mean 'name'?)"),
+        (good.replace("floor_b2", "floor_b22"), "unknown node 'floor_b22' (did you mean 'floor_b2'?)"),
+        (good.replace("map: warehouse", "map: warehous"), "map: 'warehous.yaml': no such file: "),
+        (good.replace("\n  - {", "\n\t- {"), "line 4: a tab character (YAML indents with spaces only"),
+    ]
+    for text, words in cases:
+        assert main(["run", _mission(tmp_path, text), "--report", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err
+        assert words in err, err
+        assert len(err.splitlines()) == 1 and err.startswith(str(tmp_path / "m.yaml"))
+    assert f"{(tmp_path / 'warehous.yaml').resolve()} (relative to the mission's folder) (did you mean" in (
+        main(["run", _mission(tmp_path, cases[3][0])]) and capsys.readouterr().err
+    )
+    assert main(["plan", str(MISSIONS / "warehouse.yaml"), "charger", "dropp"]) == 2
+    assert "unknown node 'dropp' (did you mean 'drop'?)" in capsys.readouterr().err
+
+
+def test_a_map_key_typo_names_the_key_it_meant(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "m.yaml"
+    path.write_text("nodes:\n  - {id: a, x: 0, y: 0, tpye: waypoint}\n")
+    assert main(["map", "check", str(path)]) == 2
+    assert "nodes[0].tpye: Extra inputs are not permitted (did you mean 'type'?)" in capsys.readouterr().err

@@ -1,6 +1,7 @@
 """run.mcap: a recorded simulated pickup read back with the `mcap` reader, channel by channel."""
 
 import json
+import logging
 import re
 import socket
 from collections import Counter, defaultdict
@@ -183,6 +184,50 @@ def test_foxglove_serves_the_channels_live(tmp_path):
     assert not r.success and r.summary["tasks"][0]["reason"] == "cancelled"
 
 
+def test_a_viewer_joining_10_s_into_the_run_gets_the_roadmap(tmp_path):
+    """Latched channels: the roadmap is sent at the start only, yet a late viewer receives it."""
+    import struct
+    import threading
+    import time
+
+    from websockets.sync.client import connect
+
+    port = free_port()
+    got: dict[str, float] = {}
+
+    def join_late(runner) -> None:
+        while runner.clock.now() < 10.0:  # 10 simulated seconds into the run
+            time.sleep(0.05)
+        got["joined_s"] = runner.clock.now()
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+            channels: dict[str, int] = {}
+            while "/scene/roadmap" not in channels or "/roadmap/graph" not in channels:
+                msg = ws.recv(timeout=5)
+                doc = json.loads(msg) if isinstance(msg, str) else {}
+                if doc.get("op") == "advertise":
+                    channels.update({ch["topic"]: ch["id"] for ch in doc["channels"]})
+            subs = {1: "/scene/roadmap", 2: "/roadmap/graph"}
+            ws.send(
+                json.dumps(
+                    {"op": "subscribe", "subscriptions": [{"id": k, "channelId": channels[t]} for k, t in subs.items()]}
+                )
+            )
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not set(subs.values()) <= set(got):
+                msg = ws.recv(timeout=20)
+                if isinstance(msg, bytes) and msg[0] == 1:  # messageData: opcode, subscription id, time, payload
+                    got[subs[struct.unpack_from("<I", msg, 1)[0]]] = len(msg) - 13
+        runner.cancel()
+
+    def on_start(runner) -> None:
+        threading.Thread(target=join_late, args=(runner,), daemon=True).start()
+
+    r = _run(tmp_path, foxglove=port, on_start=on_start)
+    assert got["joined_s"] >= 10.0
+    assert got.get("/scene/roadmap", 0) > 100 and got.get("/roadmap/graph", 0) > 100, got
+    assert r.summary["tasks"][0]["reason"] == "cancelled"
+
+
 def test_foxglove_port_in_use_is_one_line_exit_2(tmp_path, capsys):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -239,3 +284,27 @@ def test_agv_foxglove_port_in_use_is_one_line_exit_2(tmp_path, capsys):
         code = main(["agv", "--config", str(config), *args, "--labels", "truth", "--foxglove", str(port)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and f"--foxglove: cannot serve on 127.0.0.1:{port}" in err[0], err
+
+
+def test_a_viewers_failed_handshake_stays_out_of_the_runs_output(caplog: pytest.LogCaptureFixture) -> None:
+    """A client asking for `foxglove.websocket.v1` is refused by the SDK; the refusal is not printed."""
+    import time
+
+    from palletpilot.executor.adapters.mcap.recording import Recorder
+
+    recorder = Recorder(None, port=0, wall=True)
+    try:
+        port = recorder.port
+        assert port is not None
+        request = (
+            f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n"
+            "Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+            "Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"
+        )
+        with caplog.at_level(logging.DEBUG), socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            sock.sendall(request.encode())
+            assert sock.recv(4096).startswith(b"HTTP/1.1 400")
+            time.sleep(0.5)  # the SDK logs from its own thread
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "handshake" in r.getMessage()]
+    finally:
+        recorder.close()

@@ -107,8 +107,11 @@ def test_families_draw_within_their_ranges_and_the_same_for_a_seed(tmp_path: Pat
 # -- running suites --------------------------------------------------------------------------------
 
 
-def test_an_unmet_expectation_fails_the_suite_with_the_reason_and_the_report(tmp_path: Path, capsys) -> None:
+def test_an_unmet_expectation_fails_the_suite_with_the_reason_and_the_report(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
     folder = copy_suite(tmp_path)
+    monkeypatch.chdir(tmp_path)  # the reports land in ./out/test/SUITE by default
     cases = [
         {"name": "blocked", "mission": "move_b_top.yaml", "scenario": "person_in_aisle.yaml", "expect": "success"},
         {"name": "refused", "mission": "bad_unknown_node.yaml", "expect": "rejected", "message": "unknown node"},
@@ -122,20 +125,29 @@ def test_an_unmet_expectation_fails_the_suite_with_the_reason_and_the_report(tmp
     ]
     path = write_suite(folder, cases)
     junit = tmp_path / "junit.xml"
-    code = main(["test", str(path), "--report", str(tmp_path / "r"), "--junit", str(junit)])
+    code = main(["test", str(path), "--junit", str(junit)])
     out = capsys.readouterr().out
+    reports = tmp_path / "out" / "test" / "mine"
     assert code == 1
     assert "1 of 3 runs met their case" in out
     assert "blocked#0: failure (path_blocked)" in out and "expected success, got failure (path_blocked)" in out
     assert "expected a failure with collision, got path_blocked" in out
-    assert f"report: {tmp_path / 'r' / 'blocked' / '0'}/report.json" in out
+    assert f"report: {reports / 'blocked' / '0'}/report.json" in out
     assert "trajectory: " in out
+    assert out.splitlines()[-2:] == [f"reports: {reports}/ (suite.json, CASE/K/report.json)", f"JUnit: {junit}"]
+    header = next(line for line in out.splitlines() if line.startswith("case "))
+    assert header.rstrip().endswith("elapsed s")
     root = ET.parse(junit).getroot()
     cases_xml = root.findall("./testsuite/testcase")
     assert [c.get("name") for c in cases_xml] == ["blocked#0", "refused#0", "wrong_reason#0"]
     assert [c.find("failure") is not None for c in cases_xml] == [True, False, True]
-    doc = json.loads((tmp_path / "r" / "suite.json").read_text())
+    system_out = cases_xml[0].findtext("system-out") or ""
+    assert f"report: {reports / 'blocked' / '0'}" in system_out and "elapsed_s: " in system_out
+    assert "{" not in system_out and "'" not in system_out  # plain text lines, no Python dict
+    doc = json.loads((reports / "suite.json").read_text())
     assert doc["runs"] == 3 and doc["met"] == 1
+    runs = doc["results"]
+    assert all(r["started_s"] > 1e9 and r["wall_s"] >= 0 for r in runs)  # a refusal may take under 5 ms
 
 
 def test_the_example_suite_passes_with_two_jobs(tmp_path: Path) -> None:
@@ -191,3 +203,18 @@ def test_assert_failed_names_the_reason(run_mission) -> None:
     assert_checks(result)
     with pytest.raises(AssertionError, match="failed with path_blocked"):
         assert_failed(result, "collision")
+
+
+def test_drawn_values_read_as_text_and_a_case_column_is_its_elapsed_time() -> None:
+    from palletpilot.executor.apps.suite_report import drawn_text, summary_table
+    from palletpilot.executor.apps.suite_run import RunResult
+
+    drawn = {"floor_b2": {"dx": -0.05, "dy": 0.21, "dyaw_deg": 3.2}, "tilt_deg": 22.4, "clutter": [1]}
+    assert drawn_text(drawn) == "floor_b2 dx -0.05 dy 0.21 dyaw_deg 3.2; tilt_deg 22.4; clutter [1]"
+    # two runs of one case side by side (--jobs 2): 10 s each, both within 11 s of the first start
+    runs = [
+        RunResult("a#0", "a", 0, "success", True, simulated_s=60.0, wall_s=10.0, started_s=1000.0),
+        RunResult("a#1", "a", 1, "success", True, simulated_s=60.0, wall_s=10.0, started_s=1001.0),
+    ]
+    row = next(line for line in summary_table("s", runs, 11.0).splitlines() if line.startswith("a "))
+    assert row.split()[-2:] == ["120", "11.0"]  # simulated time summed; elapsed, not the 20 s of the sum

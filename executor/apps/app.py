@@ -46,7 +46,7 @@ from palletpilot.executor.core.mission import Mission, MissionError, load_missio
 from palletpilot.executor.core.resume import ResumeError, ResumePoint
 from palletpilot.executor.core.runner import Runner
 from palletpilot.executor.ports import PerceptionService
-from palletpilot.geometry.errors import collect, raise_problems
+from palletpilot.geometry.errors import collect, did_you_mean, raise_problems
 from palletpilot.geometry.fileio import bundled_path, validate_model
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.labels_mode import SIM_TRUTH, LabelsMode
@@ -198,7 +198,7 @@ def _load_run(
     where = str(mission_path)
     mission = load_mission(mission_path)  # the rest needs its map and tasks
     problems: list[str] = []
-    roadmap = collect(problems, lambda: load_map(mission.map_path))
+    roadmap = collect(problems, lambda: _load_mission_map(mission, where))
     if scenario is None and scenario_path is not None:
         scenario = collect(problems, lambda: load_scenario(scenario_path))
         if scenario is None:
@@ -225,6 +225,20 @@ def _load_run(
     raise_problems(problems, MissionError)
     assert sim is not None and scenario is not None
     return mission, roadmap, vehicle or sim.vehicle, sim, scenario
+
+
+def _load_mission_map(mission: Mission, where: str) -> Roadmap:
+    """The mission's map; a missing one named with the mission file, its `map:` field and the path it resolved to."""
+    if mission.map_path.is_dir():
+        raise MissionError(f"{where}: map: '{mission.map}': cannot read: Is a directory: {mission.map_path.resolve()}")
+    if not mission.map_path.exists():
+        folder = mission.map_path.parent
+        near = did_you_mean(mission.map_path.name, [p.name for p in folder.glob("*.yaml")]) if folder.is_dir() else ""
+        raise MissionError(
+            f"{where}: map: '{mission.map}': no such file: {mission.map_path.resolve()} "
+            f"(relative to the mission's folder){near}"
+        )
+    return load_map(mission.map_path)
 
 
 def _default_start(roadmap: Roadmap) -> str | None:

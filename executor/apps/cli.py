@@ -43,7 +43,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from palletpilot.executor.adapters.mcap.recording_channels import add_foxglove_argument
+import palletpilot
 from palletpilot.executor.apps.cli_args import Parser, add_labels_argument, number, out_file, out_folder, seed
 from palletpilot.executor.apps.cli_outcome import (
     EXIT_BAD_INPUT,
@@ -52,8 +52,6 @@ from palletpilot.executor.apps.cli_outcome import (
     EXIT_WRITE_FAILED,
     mission_outcome,
 )
-from palletpilot.executor.apps.cli_perception import endpoint
-from palletpilot.executor.apps.cli_robot import static_tf_dest
 from palletpilot.geometry import OutputError, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.geometry.fileio import bundled_path, write_atomic, write_json
@@ -206,7 +204,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run (or resume) a mission in the simulated warehouse; the exit codes are in the module docstring."""
-    from palletpilot.executor.apps.app import resume_simulated, run_simulated
     from palletpilot.executor.core.controls import CONTROLS
 
     progress = None if args.json or args.quiet else sys.stderr
@@ -225,6 +222,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 "run: --resume continues the journal's own run; give it alone (with --json, --quiet)", file=sys.stderr
             )
             return EXIT_BAD_INPUT
+        from palletpilot.executor.apps.app import resume_simulated
+
         result = resume_simulated(args.resume, progress=progress, controls=CONTROLS)
     else:
         if args.demo:
@@ -236,6 +235,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         elif not args.mission:
             print("run: give a MISSION file (or --demo for the bundled demo)", file=sys.stderr)
             return EXIT_BAD_INPUT
+        from palletpilot.executor.core.mission import load_mission
+
+        load_mission(
+            args.mission
+        )  # a bad mission file (the first check of a run) is refused before the simulator loads
+        from palletpilot.executor.apps.app import run_simulated
+
         result = run_simulated(
             args.mission,
             args.scenario,
@@ -305,9 +311,9 @@ def cmd_mission_diagram(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _add_map_and_plan(sub: Any) -> None:
-    """The `map check`, `map show` and `plan` commands."""
-    map_p = sub.add_parser("map", help="check or draw a map file")
+def _add_map(sub: Any) -> None:
+    """The `map check` and `map show` commands."""
+    map_p = sub.add_parser("map", help=_HELP["map"])
     map_sub = map_p.add_subparsers(dest="map_command", required=True)
     check = map_sub.add_parser("check", help="validate a map file (exit 2 listing every problem)")
     check.add_argument("map")
@@ -319,7 +325,10 @@ def _add_map_and_plan(sub: Any) -> None:
     show.add_argument("--route", nargs=2, metavar=("FROM", "TO"), help="also draw the planned route")
     show.set_defaults(func=cmd_map_show)
 
-    plan = sub.add_parser("plan", help="plan the shortest route between two nodes")
+
+def _add_plan(sub: Any) -> None:
+    """The `plan` command."""
+    plan = sub.add_parser("plan", help=_HELP["plan"])
     plan.add_argument("map")
     plan.add_argument("start", metavar="FROM")
     plan.add_argument("goal", metavar="TO")
@@ -329,7 +338,10 @@ def _add_map_and_plan(sub: Any) -> None:
 
 def _add_run(sub: Any) -> None:
     """The `run` command."""
-    run = sub.add_parser("run", help="run a mission (in the simulated warehouse)")
+    from palletpilot.executor.adapters.mcap.recording_channels import add_foxglove_argument
+    from palletpilot.executor.apps.cli_perception import endpoint
+
+    run = sub.add_parser("run", help=_HELP["run"])
     run.add_argument("mission", nargs="?", help="mission file (YAML)")
     run.add_argument("--demo", action="store_true", help=f"the bundled demo: {DEMO_MISSION} in {DEMO_SCENARIO}")
     run.add_argument("--scenario", help="scenario file (default: the default simulated warehouse)")
@@ -366,13 +378,16 @@ def _add_run(sub: Any) -> None:
     run.set_defaults(func=cmd_run)
 
 
-def _add_examples_and_mission(sub: Any) -> None:
-    """The `examples` and `mission diagram` commands."""
-    examples = sub.add_parser("examples", help="the bundled example files: list them, or copy them to edit")
+def _add_examples(sub: Any) -> None:
+    """The `examples` command."""
+    examples = sub.add_parser("examples", help=_HELP["examples"])
     examples.add_argument("--out", type=out_folder, help="copy them into this folder (existing files are left alone)")
     examples.set_defaults(func=cmd_examples)
 
-    mission = sub.add_parser("mission", help="mission tools")
+
+def _add_mission(sub: Any) -> None:
+    """The `mission diagram` command."""
+    mission = sub.add_parser("mission", help=_HELP["mission"])
     mission_sub = mission.add_subparsers(dest="mission_command", required=True)
     diagram = mission_sub.add_parser("diagram", help="draw a task type's state machine (mermaid)")
     diagram.add_argument("task", help="pickup, pickup_no_adapt, pickup_paper, delivery, move, charge, wait")
@@ -382,7 +397,9 @@ def _add_examples_and_mission(sub: Any) -> None:
 
 def _add_calibrate(sub: Any) -> None:
     """The `calibrate` command."""
-    cal = sub.add_parser("calibrate", help="calibrate the camera pose from the forks and the floor")
+    from palletpilot.executor.apps.cli_robot import static_tf_dest
+
+    cal = sub.add_parser("calibrate", help=_HELP["calibrate"])
     cal.add_argument("frames", nargs="+", metavar="FRAME.npz", help="frame bundles with labels")
     cal.add_argument("--forks", required=True, help="fork geometry file (YAML)")
     cal.add_argument("--method", choices=("model", "paper"), default="model")
@@ -409,7 +426,7 @@ def _add_calibrate(sub: Any) -> None:
 
 def _add_sim(sub: Any) -> None:
     """The `sim render` command, and `sim serve --ros` (`executor.apps.cli_robot`)."""
-    sim = sub.add_parser("sim", help="the simulated warehouse")
+    sim = sub.add_parser("sim", help=_HELP["sim"])
     sim_sub = sim.add_subparsers(dest="sim_command", required=True)
     render = sim_sub.add_parser("render", help="render one RGB-D frame bundle (.npz) of a scenario")
     render.add_argument("scenario")
@@ -423,32 +440,56 @@ def _add_sim(sub: Any) -> None:
     importlib.import_module("palletpilot.executor.apps.cli_robot").add_sim_serve(sim_sub)  # sim serve --ros
 
 
-def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParser:
-    """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`)."""
+# Every command: name, help, and where it is defined (a function here, or the module next to the code it
+# drives, which has an `add_parsers`). Only the given command is built; the others appear in `--help` from
+# this table, so `--help`, `--version`, `map check`, `plan` and a refused command line load no module (nor
+# open3d, scipy.optimize, casadi, OpenCV) of a command they do not run. tests/test_cli_startup.py checks
+# that each module's help matches this table.
+_COMMANDS: tuple[tuple[str, str, Callable[[Any], None] | str], ...] = (
+    ("map", "check or draw a map file", _add_map),
+    ("plan", "plan the shortest route between two nodes", _add_plan),
+    ("run", "run a mission (in the simulated warehouse)", _add_run),
+    ("examples", "the bundled example files: list them, or copy them to edit", _add_examples),
+    ("mission", "mission tools", _add_mission),
+    ("calibrate", "calibrate the camera pose from the forks and the floor", _add_calibrate),
+    ("sim", "the simulated warehouse", _add_sim),
+    ("camera", "depth camera tools", "cli_camera"),
+    ("capture", "save RGB-D frame bundles from a RealSense camera or recording", "cli_capture"),
+    ("forks", "fork geometry tools", "cli_forks"),
+    ("estimate-pallet", "estimate the pallet pose in a frame bundle (.npz)", "cli_pallet"),
+    ("pallet", "pallet type tools", "cli_pallet_measure"),
+    ("perception", "perception as a service (Zenoh)", "cli_perception"),
+    ("replay", "a run's report (report.json, trajectory.png) from its run.mcap", "cli_replay"),
+    ("robot", "run a mission on a real truck over ROS 2 (robot.yaml)", "cli_robot"),
+    ("segment", "segmentation datasets, training, evaluation and timing", "cli_segmentation"),
+    ("test", "run a mission test suite (SUITE.yaml) in the simulator", "cli_test"),
+    ("agv", "run as a VDA 5050 AGV: orders from a fleet manager over MQTT", "vda5050.cli_agv"),
+)
+_HELP = {name: text for name, text, _ in _COMMANDS}
+ALL_COMMANDS = "*"
+"""`build_parser(command=ALL_COMMANDS)` builds every command in full (tests, documentation)."""
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The sub-command named in `argv` (the first word that is not an option), None when there is none."""
+    return next((arg for arg in argv if not arg.startswith("-")), None)
+
+
+def build_parser(extensions: Sequence[Extension] = (), command: str | None = ALL_COMMANDS) -> argparse.ArgumentParser:
+    """The argument parser of `palletpilot`; each extension adds its sub-commands (`palletpilot.cli`).
+
+    Only `command` is built in full (all of them with `ALL_COMMANDS`); the others are stand-ins with their help.
+    """
     parser = Parser(prog="palletpilot", description="Mission executor for automated forklifts.")
+    parser.add_argument("--version", action="version", version=f"palletpilot {palletpilot.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-
-    _add_map_and_plan(sub)
-    _add_run(sub)
-    _add_examples_and_mission(sub)
-    _add_calibrate(sub)
-    _add_sim(sub)
-
-    # Commands defined next to the code they drive.
-    for module in (
-        "palletpilot.executor.apps.cli_camera",
-        "palletpilot.executor.apps.cli_capture",
-        "palletpilot.executor.apps.cli_forks",
-        "palletpilot.executor.apps.cli_pallet",
-        "palletpilot.executor.apps.cli_pallet_measure",
-        "palletpilot.executor.apps.cli_perception",
-        "palletpilot.executor.apps.cli_replay",
-        "palletpilot.executor.apps.cli_robot",
-        "palletpilot.executor.apps.cli_segmentation",
-        "palletpilot.executor.apps.cli_test",
-        "palletpilot.executor.apps.vda5050.cli_agv",
-    ):
-        importlib.import_module(module).add_parsers(sub)
+    for name, text, where in _COMMANDS:
+        if command not in (name, ALL_COMMANDS):
+            sub.add_parser(name, help=text)  # never run: the command given is built in full
+        elif isinstance(where, str):
+            importlib.import_module(f"palletpilot.executor.apps.{where}").add_parsers(sub)
+        else:
+            where(sub)
     for extend in extensions:
         extend(sub)
     return parser
@@ -456,7 +497,8 @@ def build_parser(extensions: Sequence[Extension] = ()) -> argparse.ArgumentParse
 
 def main(argv: Sequence[str] | None = None, extensions: Sequence[Extension] = ()) -> int:
     """Run the command line; returns the exit code. `palletpilot.cli.main` adds the `bench` extension."""
-    parser = build_parser(extensions)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(extensions, command_of(argv))
     args, extra = parser.parse_known_args(argv)
     try:
         with warnings.catch_warnings():

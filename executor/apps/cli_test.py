@@ -5,7 +5,8 @@ Runs every case of a mission test suite (`executor.suite`) in the simulator, `--
 at a time (each run is deterministic for its seed, whatever the order), prints a line per finished run
 on stderr, then the summary table (each run that did not meet its case with its reasons and the paths
 to its report and trajectory image); `--junit FILE` writes JUnit XML, `--report DIR` (default
-`test-reports/<suite name>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`.
+`out/test/<suite file's stem>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`;
+the last lines say where both landed.
 `--executor ray` runs each run as a Ray task instead (`executor.apps.suite_ray`: a local Ray instance, or the
 cluster at `--ray-address`; `--jobs` then caps the runs at a time, default the cluster's CPUs); Ctrl-C
 there cancels the cluster's tasks, writes the summary and JUnit of the runs that finished, exit 130.
@@ -29,6 +30,9 @@ from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ra
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 from palletpilot.geometry.fileio import write_atomic, write_json
+
+DEFAULT_REPORT_ROOT = Path("out") / "test"
+"""Where `palletpilot test` keeps the runs' reports without --report (`out/` is ignored by git)."""
 
 
 def _run_all(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
@@ -63,7 +67,7 @@ def cmd_test(args: argparse.Namespace) -> int:
     if executor is Executor.LOCAL and args.ray_address:
         raise SuiteError("--ray-address: only with --executor ray")
     specs = suite.runs(only)
-    report = Path(args.report or Path("test-reports") / Path(args.suite).stem).resolve()
+    report = Path(args.report or DEFAULT_REPORT_ROOT / Path(args.suite).stem).resolve()
     report.mkdir(parents=True, exist_ok=True)
     at_a_time = str(args.jobs or (1 if executor is Executor.LOCAL else "the cluster's CPUs"))
     cases = len({s.case for s in specs})
@@ -88,6 +92,10 @@ def cmd_test(args: argparse.Namespace) -> int:
     if args.junit:
         write_atomic(args.junit, junit_xml(suite.name, results, wall_s))
     print(json.dumps(doc, indent=2) if args.json else summary_table(suite.name, results, wall_s))
+    where = sys.stderr if args.json else sys.stdout  # --json: stdout holds the JSON alone
+    print(f"reports: {report}/ (suite.json, CASE/K/report.json)", file=where)
+    if args.junit:
+        print(f"JUnit: {Path(args.junit).resolve()}", file=where)
     if interrupted:
         done = f"{len(results)} of {len(specs)} runs finished"
         print(f"interrupted: {done}, the cluster's tasks cancelled", file=sys.stderr)
@@ -110,7 +118,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--ray-address", metavar="ADDR", help="with --executor ray: ray://HOST:10001, auto or HOST:PORT")
     p.add_argument("--junit", type=out_file(".xml"), metavar="FILE.xml", help="write JUnit XML")
-    p.add_argument("--report", type=out_folder, metavar="DIR", help="report folder (default test-reports/SUITE)")
+    p.add_argument("--report", type=out_folder, metavar="DIR", help="report folder (default out/test/SUITE)")
     p.add_argument("--only", metavar="NAME[,NAME]", help="run only these cases")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
     p.set_defaults(func=cmd_test)

@@ -2,14 +2,17 @@
 
 - `progress_line(result, done, total)`: one line per finished run (stderr, as runs finish);
 - `summary_table(suite_name, results, wall_s)`: per case the runs, how many met their expectation, the
-  outcomes, simulated and wall time; then each run that did not, with every reason and the paths to
-  its report.json and trajectory.png;
+  outcomes, the simulated time (summed over its runs) and the elapsed time (from its first run's start
+  to its last run's end: runs of other cases overlap it with `--jobs`); then each run that did not,
+  with every reason and the paths to its report.json and trajectory.png;
 - `junit_xml(suite_name, results)`: one `<testcase>` per run (`classname` the suite and case, `name`
-  `case#k`, `time` the wall time), a `<failure>` with every problem when it did not meet its case, so a
-  CI server (GitLab, Jenkins, GitHub via an action) shows the runs;
-- `suite_json(...)`: the same as JSON (`DIR/suite.json` with `--report DIR`).
+  `case#k`, `time` the run's elapsed time), a `<failure>` with every problem when it did not meet its
+  case, and a `<system-out>` of plain `key: value` lines (outcome, times, report folder, what the family
+  drew), so a CI server (GitLab, Jenkins, GitHub via an action) shows the runs;
+- `suite_json(...)`: the same as JSON (`DIR/suite.json`);
+- `drawn_text(drawn)`: what a family drew for a run, as one line of text.
 
-Public API: the four functions above.
+Public API: the five functions above.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ def summary_table(suite_name: str, results: list[RunResult], wall_s: float) -> s
     cases: dict[str, list[RunResult]] = {}
     for r in results:
         cases.setdefault(r.case, []).append(r)
-    rows = [("case", "runs", "met", "outcomes", "sim s", "wall s")]
+    rows = [("case", "runs", "met", "outcomes", "sim s", "elapsed s")]
     for name, runs in cases.items():
         outcomes = Counter(r.outcome for r in runs)
         rows.append(
@@ -46,7 +49,7 @@ def summary_table(suite_name: str, results: list[RunResult], wall_s: float) -> s
                 str(sum(r.met for r in runs)),
                 ", ".join(f"{k} {v}" for k, v in sorted(outcomes.items())),
                 f"{sum(r.simulated_s for r in runs):.0f}",
-                f"{sum(r.wall_s for r in runs):.1f}",
+                f"{_elapsed(runs):.1f}",
             )
         )
     widths = [max(len(row[c]) for row in rows) for c in range(len(rows[0]))]
@@ -63,6 +66,7 @@ def summary_table(suite_name: str, results: list[RunResult], wall_s: float) -> s
     met = sum(r.met for r in results)
     sim_s = sum(r.simulated_s for r in results)
     lines.append(f"{met} of {len(results)} runs met their case in {wall_s:.1f} s ({sim_s / 60:.1f} simulated minutes)")
+    lines.append("(sim s: simulated time summed over the case's runs; elapsed s: its first start to its last end)")
     failed = [r for r in results if not r.met]
     if failed:
         lines.append("")
@@ -71,7 +75,7 @@ def summary_table(suite_name: str, results: list[RunResult], wall_s: float) -> s
             lines.append(f"  {r.label}: {r.outcome}" + (f" ({r.reason})" if r.reason else ""))
             lines += [f"    - {p}" for p in r.problems]
             if r.drawn:
-                lines.append(f"    drawn: {r.drawn}")
+                lines.append(f"    drawn: {drawn_text(r.drawn)}")
             if r.report_dir:
                 lines.append(f"    report: {r.report_dir}/report.json")
             if r.trajectory_png:
@@ -103,12 +107,43 @@ def junit_xml(suite_name: str, results: list[RunResult], wall_s: float) -> str:
             tag = "error" if r.outcome == "error" else "failure"
             body = "\n".join([*r.problems, *([f"report: {r.report_dir}/report.json"] if r.report_dir else [])])
             ET.SubElement(case, tag, message=r.problems[0] if r.problems else r.outcome).text = body
-        out = [f"outcome: {r.outcome}" + (f" ({r.reason})" if r.reason else ""), f"simulated_s: {r.simulated_s}"]
+        out = [
+            f"outcome: {r.outcome}" + (f" ({r.reason})" if r.reason else ""),
+            f"simulated_s: {r.simulated_s:.2f}",
+            f"elapsed_s: {r.wall_s:.2f}",
+        ]
+        if r.report_dir:
+            out.append(f"report: {r.report_dir}")
+            if r.trajectory_png:
+                out.append(f"trajectory: {r.trajectory_png}")
         if r.drawn:
-            out.append(f"drawn: {r.drawn}")
+            out.append(f"drawn: {drawn_text(r.drawn)}")
         ET.SubElement(case, "system-out").text = "\n".join(out)
     ET.indent(root)
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _elapsed(runs: list[RunResult]) -> float:
+    """Seconds from the first of `runs` starting to the last one ending."""
+    return max(r.started_s + r.wall_s for r in runs) - min(r.started_s for r in runs)
+
+
+def _number(value: Any) -> str:
+    """A drawn value as text: numbers with `:g`, lists comma-separated."""
+    if isinstance(value, list):
+        return "[" + ", ".join(_number(v) for v in value) + "]"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def drawn_text(drawn: dict[str, Any]) -> str:
+    """What a family drew for a run, one line: `floor_b2 dx -0.05 dy 0.21 dyaw_deg 3.2; tilt_deg 22.4; clutter [1]`."""
+    parts = []
+    for key, value in drawn.items():
+        if isinstance(value, dict):
+            parts.append(" ".join([key, *(f"{k} {_number(v)}" for k, v in value.items())]))
+        else:
+            parts.append(f"{key} {_number(value)}")
+    return "; ".join(parts)
 
 
 def suite_json(suite_name: str, results: list[RunResult], wall_s: float, jobs: int) -> dict[str, Any]:

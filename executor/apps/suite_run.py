@@ -53,7 +53,8 @@ class RunResult:
     reason: str | None = None  # the first failed task's reason, or the refusal's first line
     problems: list[str] = field(default_factory=list)  # why the run did not meet its case (one line each)
     simulated_s: float = 0.0
-    wall_s: float = 0.0
+    wall_s: float = 0.0  # this run's own elapsed time (s)
+    started_s: float = 0.0  # when it started (Unix time, s: comparable across the worker processes)
     report_dir: str | None = None
     drawn: dict[str, Any] = field(default_factory=dict)
     retried: bool = False  # its worker died (node lost, out of memory) and it ran again (`--executor ray`)
@@ -79,6 +80,7 @@ def run_case(spec: RunSpec, report_root: Path) -> RunResult:
     folder = report_root / spec.case / str(spec.index)
     res = RunResult(spec.label, spec.case, spec.index, "error", False, report_dir=str(folder), drawn=spec.drawn)
     t0 = time.perf_counter()
+    res.started_s = round(time.time(), 3)
     try:
         scenario = None
         if spec.scenario_doc is not None:

@@ -34,7 +34,7 @@ from pydantic import Field, model_validator
 
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.geometry import PalletpilotError
-from palletpilot.geometry.errors import raise_problems
+from palletpilot.geometry.errors import did_you_mean, raise_problems
 from palletpilot.geometry.fileio import FileModel, load_yaml_model
 from palletpilot.perception.specs import PalletType, pallet_type_in
 from palletpilot.roadmap import NodeType, Planner, Roadmap, RoadmapError
@@ -213,7 +213,9 @@ def validate_mission(mission: Mission, roadmap: Roadmap, vehicle: VehicleParams,
             continue
         label += f" {node_id})"
         if node_id not in roadmap:
-            problems.append(f"{label}: unknown node '{node_id}'")
+            problems.append(
+                f"{label}: unknown node '{node_id}'{did_you_mean(node_id, [n.id for n in roadmap.nodes()])}"
+            )
             continue
         node = roadmap.node(node_id)
         allowed = NODE_TYPES.get(task.type)

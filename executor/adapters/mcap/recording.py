@@ -76,11 +76,13 @@ from palletpilot.executor.adapters.mcap.recording_channels import (
     RESUMED_RECORDING,
     SIM_EPOCH_NS,
     TOPICS,
+    Latch,
     RecordingError,
     RecordingVehicle,
     add_foxglove_argument,
     finite,
     json_schema,
+    quiet_handshakes,
 )
 from palletpilot.executor.adapters.mcap.recording_events import RecorderEvents
 from palletpilot.executor.adapters.mcap.recording_sim import SimFeed
@@ -150,6 +152,7 @@ class Recorder(RecorderCamera, RecorderEvents):
         self._pending_s = 0.0
         self._ticks = 0
         self.counts: dict[str, int] = {}
+        self._latch = Latch()  # late viewers: the last message of the seldom-sent channels
         self.runner: Runner | None = None
         self.sim: SimFeed | None = None
         self.vehicle: RecordingVehicle | None = None
@@ -166,7 +169,10 @@ class Recorder(RecorderCamera, RecorderEvents):
                 self.errors.append(f"{mcap}: cannot write the recording: {exc}")
         if port is not None:
             try:
-                self._server = foxglove.start_server(name="palletpilot", host=host, port=port, context=self.ctx)
+                quiet_handshakes()
+                self._server = foxglove.start_server(
+                    name="palletpilot", host=host, port=port, context=self.ctx, server_listener=self._latch
+                )
             except Exception as exc:
                 self._shutdown()
                 raise RecordingError(f"--foxglove: cannot serve on {host}:{port}: {exc}") from None
@@ -238,11 +244,13 @@ class Recorder(RecorderCamera, RecorderEvents):
         """Log a SceneUpdate on a `/scene/...` topic."""
         self.scene[topic].log(update, log_time=ns)
         self.count_message(topic)
+        self._latch.keep(topic, update)
 
     def log_json(self, topic: str, doc: Any, ns: int) -> None:
         """Log a JSON document (strict: non-finite numbers as null) on a JSON topic."""
         self.json[topic].log(dumps_json(doc).encode(), log_time=ns)
         self.count_message(topic)
+        self._latch.keep(topic, doc)
 
     def _fail(self, where: str, exc: BaseException) -> None:
         """An error inside the recorder: one line, and the recording stops (the run goes on)."""
@@ -423,6 +431,8 @@ class Recorder(RecorderCamera, RecorderEvents):
         runner, vehicle = self.runner, self.vehicle  # no runner: between a session's legs
         assert vehicle is not None and self._roadmap is not None
         self._ticks += 1
+        for topic, message in self._latch.due():  # a viewer joined late (`Latch`)
+            (self.log_scene if topic in self.scene else self.log_json)(topic, message, self.ns())
         if self.flush_s is not None and time.monotonic() - self._last_flush >= self.flush_s:
             self._last_flush = time.monotonic()
             writer = self._writer

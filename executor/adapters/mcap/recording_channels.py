@@ -2,7 +2,7 @@
 
 Public API: `TOPICS`, `JSON_FIELDS`, `json_schema`, `RECORDING`, `RESUMED_RECORDING`, `FOXGLOVE_PORT`,
 `SIM_EPOCH_NS`, `RecordingError`, `add_foxglove_argument`, `RecordingVehicle`, `RecordingSegmenter`,
-`level`, `log_text`, `finite`.
+`level`, `log_text`, `finite`, `LATCHED`, `Latch`, `quiet_handshakes`.
 
 Channels (well-known Foxglove schemas, protobuf; `palletpilot.*`: JSON with a JSON schema), one a line:
 topic, schema, when.
@@ -29,19 +29,25 @@ topic, schema, when.
 - `/report/task`, palletpilot.TaskResult: per finished task; `/report/run`, palletpilot.RunResult: at the
   end, every `TaskResult` and the run's figures (for `replay`)
 - `/sim/true_pose` (foxglove.PoseInFrame), `/scene/true_pallets`, `/scene/obstacles`: simulator only
+
+Live: the channels of `LATCHED` are sent again when a viewer subscribes late (`Latch`), so it gets the
+roadmap and the static scene; `quiet_handshakes` keeps refused viewers out of the run's output.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import foxglove
 import numpy as np
 from foxglove.messages import LogLevel
+from foxglove.websocket import ServerListener
 
 from palletpilot.executor.ports import PassThroughVehicle
 from palletpilot.geometry import SE2, PalletpilotError
@@ -164,6 +170,66 @@ class RecordingError(PalletpilotError):
     """The live view cannot start (its port is taken, its host unknown): an input problem."""
 
 
+LATCHED = frozenset(
+    {"/roadmap/graph", "/scene/roadmap", "/scene/temporary_nodes", "/scene/planned_paths", "/scene/true_pallets"}
+    | {"/scene/obstacles", "/perception/calibration"}
+)
+"""Channels that hold a state sent seldom: a viewer that subscribes late gets their last message again."""
+
+
+class Latch(ServerListener):
+    """The last message of each `LATCHED` channel, and the ones a viewer has just subscribed to.
+
+    A viewer that joins after the start still gets the roadmap and the static scene, as a latched ROS
+    topic gives it: `on_subscribe` (the SDK's thread) marks the channel; the recorder's next tick sends
+    its last message again (`due`), to every sink, so run.mcap holds it once more per late subscription.
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, Any] = {}
+        self._due: set[str] = set()
+        self._lock = threading.Lock()
+
+    def keep(self, topic: str, message: Any) -> None:
+        """Remember `message` as `topic`'s last (a no-op for channels that are not latched)."""
+        if topic in LATCHED:
+            with self._lock:
+                self._last[topic] = message
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        """A viewer subscribed: its latched channel is due again."""
+        if channel.topic in LATCHED:
+            with self._lock:
+                self._due.add(channel.topic)
+
+    def due(self) -> list[tuple[str, Any]]:
+        """The (topic, last message) pairs to send again now; each once per subscription."""
+        with self._lock:
+            out = [(t, self._last[t]) for t in sorted(self._due) if t in self._last]
+            self._due.clear()
+        return out
+
+
+class _NoHandshakeNoise(logging.Filter):
+    """Drops the SDK's `Dropping client ...: handshake failed` (a viewer asking for another subprotocol,
+    a port scanner): a viewer's problem, printed into the run's progress line by Python's last-resort
+    handler. Every other record of the SDK passes."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "handshake failed" not in record.getMessage()
+
+
+SERVER_LOGGER = "foxglove.websocket.server"
+"""The logger the foxglove SDK's WebSocket server writes to (through Python logging)."""
+
+
+def quiet_handshakes() -> None:
+    """Keep failed viewer handshakes out of the run's output (idempotent; before the server starts)."""
+    logger = logging.getLogger(SERVER_LOGGER)
+    if not any(isinstance(f, _NoHandshakeNoise) for f in logger.filters):
+        logger.addFilter(_NoHandshakeNoise())
+
+
 def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
     """`--foxglove [PORT]` and `--foxglove-host HOST`: serve the run's channels live over the Foxglove
     WebSocket protocol on HOST:PORT (default 127.0.0.1:8765); for `run` and any command that records a run."""
@@ -173,7 +239,8 @@ def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
         const=FOXGLOVE_PORT,
         type=_port,
         metavar="PORT",
-        help=f"also show the run live in Foxglove (ws://127.0.0.1:PORT, default {FOXGLOVE_PORT}; 0: any free port)",
+        help=f"also show the run live in Foxglove (ws://127.0.0.1:PORT, default {FOXGLOVE_PORT}; 0: any free port; "
+        "the viewer needs the foxglove.sdk.v1 subprotocol; with `run`, --clock wall plays it in real time)",
     )
     parser.add_argument(
         "--foxglove-host",
