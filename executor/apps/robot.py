@@ -21,8 +21,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
-import importlib
-import math
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -35,6 +33,11 @@ from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.executor.adapters.local_perception import LocalPerception
 from palletpilot.executor.adapters.mcap.recording import Recorder, start_recording
 from palletpilot.executor.adapters.ros.config import RobotConfig, load_robot
+from palletpilot.executor.adapters.ros.startup import (
+    RobotError,
+    camera_grab,
+    start_node,
+)
 from palletpilot.executor.adapters.stores.journal import Journal
 from palletpilot.executor.adapters.stores.report import ms_stats, summary
 from palletpilot.executor.apps import compose
@@ -44,21 +47,12 @@ from palletpilot.executor.core.controls import Controls
 from palletpilot.executor.core.mission import Mission, load_mission, validate_mission
 from palletpilot.executor.core.runner import Runner
 from palletpilot.executor.ports import PerceptionService
-from palletpilot.geometry import PalletpilotError, angle_diff
+from palletpilot.geometry import PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
 from palletpilot.perception.calibration_io import Calibration, load_calibration
-from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.labels_mode import DEFAULT_LABELS_MODE, LabelsMode
 from palletpilot.perception.specs import ForkGeometry, load_forks
 from palletpilot.roadmap import Roadmap, load_map, map_vehicle_file
-
-START_TOLERANCE_M = 0.25
-START_TOLERANCE_DEG = 10.0
-"""The truck stands on its start node within these."""
-
-
-class RobotError(PalletpilotError):
-    """The run cannot start: a bad input, a silent topic, no tf, a stale calibration (one line each)."""
 
 
 @dataclass
@@ -135,24 +129,6 @@ def load_inputs(
     assert mission is not None and roadmap is not None and config is not None
     assert params is not None and forks is not None
     return Inputs(mission, roadmap, config, params, forks, calibration)
-
-
-def start_node(roadmap: Roadmap, pose: Any, named: str | None = None) -> str:
-    """The node the truck stands on (within `START_TOLERANCE_*`), or `named` checked the same way."""
-    candidates = [roadmap.node(named)] if named is not None and named in roadmap else []
-    if named is not None and not candidates:
-        raise RobotError(f"--start: unknown node '{named}'")
-    nodes = candidates or list(roadmap.nodes())
-    best = min(nodes, key=lambda n: math.hypot(n.pose.x - pose.x, n.pose.y - pose.y))
-    off_m = math.hypot(best.pose.x - pose.x, best.pose.y - pose.y)
-    off_deg = abs(math.degrees(angle_diff(pose.yaw, best.pose.yaw)))
-    if off_m > START_TOLERANCE_M or off_deg > START_TOLERANCE_DEG:
-        raise RobotError(
-            f"localization: the truck stands at x {pose.x:.2f} m, y {pose.y:.2f} m, yaw {math.degrees(pose.yaw):.1f} "
-            f"deg, {off_m:.2f} m and {off_deg:.0f} deg from node '{best.id}' (the nearest{' named' if named else ''}; "
-            f"limits {START_TOLERANCE_M} m, {START_TOLERANCE_DEG:.0f} deg): drive it onto a node first"
-        )
-    return best.id
 
 
 def _sha256(path: Path) -> str:
@@ -294,7 +270,7 @@ def _execute(
             perception.segmenter = recorder.wrap_segmenter(perception.segmenter)
     outputs = compose.Outputs(events, book, recorder)
     parts = compose.Parts(
-        mission, inputs.roadmap, vehicle, perception, _grab(camera, config.source), clock, inputs.params,
+        mission, inputs.roadmap, vehicle, perception, camera_grab(camera, config.source), clock, inputs.params,
         inputs.forks, node, MpcFollower(inputs.params, MpcConfig()),
     )  # fmt: skip
     runner = compose.build_runner(parts, outputs, settings, progress, controls)
@@ -342,20 +318,6 @@ def _perception(
     return stack.enter_context(service)
 
 
-def _grab(camera: Any, source: str) -> Callable[[], FrameBundle]:
-    """The camera's next frame bundle; without a camera (`camera.source: none`) a `PerceptionError`."""
-
-    def grab() -> FrameBundle:
-        if camera is None:
-            from palletpilot.perception.errors import PerceptionError
-
-            raise PerceptionError(f"{source}: camera.source: none")
-        frame: FrameBundle = camera.grab()
-        return frame
-
-    return grab
-
-
 def _journal(
     journal: str | Path | None,
     run_id: str,
@@ -399,80 +361,3 @@ def _figures(
         "drive_commands_sent": vehicle.commands_sent,
         "localization_age_ms": ms_stats(getattr(vehicle, "localization_age_s", [])),
     }
-
-
-def open_backend(
-    loaded: Any, robot_path: str | Path, wait_s: float = 5.0, labels: LabelsMode = DEFAULT_LABELS_MODE
-) -> Any:
-    """The VDA 5050 AGV's vehicle on a real truck (`palletpilot agv --robot robot.yaml`): a
-    `executor.vda5050.vehicle.Backend` with `RosVehicle`, the camera, perception in this process and a
-    wall clock at the robot file's rate that sends the drive command after every tick.
-
-    `loaded`: the AGV's checked configuration (its roadmap and vehicle). Refuses (`RobotError`, one line
-    each) as `run_robot` does: a bad robot or forks file, silent topics, no tf, a fault, no camera frame.
-    The start node is the node the truck stands on, or None (the AGV then takes the nearest).
-    """
-    from palletpilot.executor.adapters.ros.camera import RealSenseCamera, RosCamera
-    from palletpilot.executor.adapters.ros.transport import open_transport
-    from palletpilot.executor.adapters.ros.vehicle import RosVehicle
-    from palletpilot.perception.segmentation import DEFAULT_MODEL, OnnxSegmenter
-    from palletpilot.perception.specs import PalletType
-
-    # the AGV's package, loaded by its caller
-    vda = importlib.import_module("palletpilot.executor.apps.vda5050.vehicle")
-    problems: list[str] = []
-    config = collect(problems, lambda: load_robot(robot_path))
-    forks = collect(problems, lambda: load_forks(config.path(config.forks))) if config is not None else None
-    raise_problems(problems, RobotError)
-    assert config is not None and forks is not None
-    params: VehicleParams = loaded.vehicle
-    transport = open_transport(config.transport, config.domain_id)
-    camera: RosCamera | RealSenseCamera | None = None
-    try:
-        vehicle = RosVehicle(transport, config, params)
-        if config.camera.source == "ros":
-            camera = RosCamera(transport, config, lambda: vehicle.fork_height)
-        elif config.camera.source == "realsense":
-            camera = RealSenseCamera(config.camera.serial, lambda: vehicle.fork_height)
-        problems = vehicle.wait_ready(wait_s)
-        t_end = time.monotonic() + (0.0 if problems else wait_s)
-        while camera is not None and camera.problems() and time.monotonic() < t_end:
-            time.sleep(0.05)
-        problems += camera.problems() if camera is not None else []
-        raise_problems([f"{config.source}: {p}" for p in problems], RobotError)
-        try:
-            node: str | None = start_node(loaded.roadmap, vehicle.localization())
-        except RobotError:
-            node = None
-    except BaseException:
-        if camera is not None:
-            camera.close()
-        transport.close()
-        raise
-    clock = vda.TickClock(WallClock(dt=config.control_dt, step=vehicle.tick))
-    vehicle.now = clock.now
-    if camera is not None:
-        camera.now = clock.now
-
-    def close() -> None:
-        vehicle.close()
-        if camera is not None:
-            camera.close()
-        transport.close()
-
-    return vda.Backend(
-        vehicle=vehicle,
-        perception=LocalPerception(
-            forks,
-            PalletType.eur(),
-            segmenter=None if labels == LabelsMode.GEOMETRY else OnnxSegmenter(DEFAULT_MODEL),
-            labels=labels,
-        ),
-        grab=_grab(camera, config.source),
-        clock=clock,
-        params=params,
-        forks=forks,
-        follower=MpcFollower(params, MpcConfig()),
-        start_node=node,
-        close=close,
-    )

@@ -10,7 +10,8 @@ Modules:
 - `vehicle`: `RosVehicle`, the executor's `VehiclePort` on those topics.
 - `camera`: `RosCamera` (realsense-ros topics) and `RealSenseCamera` (pyrealsense2): frame bundles.
 
-The composition roots over this adapter are apps: `executor.apps.robot` (`run_robot`, `open_backend`) and
+The composition roots over this adapter are apps: `executor.apps.robot` (`run_robot`), the VDA 5050 AGV's
+`executor.apps.vda5050.robot_backend` (`open_backend`; both start through `startup`) and
 `executor.apps.cli_robot` (the commands, and the `calibrate --ros-static-tf` output); the simulator playing
 the truck on the same topics is `executor.apps.standin` (`palletpilot sim serve --ros`).
 

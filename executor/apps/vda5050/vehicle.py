@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -164,24 +163,16 @@ def sim_backend(
 
 
 def robot_backend(loaded: Loaded, robot_path: str | Path, labels: LabelsMode = DEFAULT_LABELS_MODE) -> Backend:
-    """A real truck through the ROS 2 adapter (`palletpilot.executor.adapters.ros`: `open_backend(loaded, robot.yaml)`);
-    `labels`: which source selects perception's pixels."""
+    """A real truck through the ROS 2 adapter (`executor.adapters.ros`, wired by `apps.vda5050.robot_backend`);
+    `labels`: which source selects perception's pixels. Without the adapter's libraries: `BackendError`."""
     try:
-        ros = importlib.import_module("palletpilot.executor.apps.robot")
+        from palletpilot.executor.apps.vda5050.robot_backend import open_backend
     except ImportError as exc:
         raise BackendError(
             f"--robot {robot_path}: needs the ROS 2 adapter (executor.adapters.ros), which is not available "
             f"here ({exc}); run with --sim SCENARIO, or install the adapter"
         ) from None
-    opener = getattr(ros, "open_backend", None)
-    if opener is None:
-        raise BackendError(
-            f"--robot {robot_path}: the ROS 2 adapter (executor.adapters.ros) has no open_backend(loaded, path) "
-            "for the AGV yet; run with --sim SCENARIO"
-        )
-    backend = opener(loaded, Path(robot_path), labels=labels)
-    if not isinstance(backend, Backend):
-        raise BackendError(f"--robot {robot_path}: the ROS 2 adapter did not return a vehicle backend")
+    backend: Backend = open_backend(loaded, Path(robot_path), labels=labels)
     return backend
 
 
