@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib
 import math
 import time
 from collections.abc import Callable
@@ -238,7 +237,8 @@ def _labeller(kind: str) -> tuple[Callable[[FrameBundle], FrameBundle] | None, s
 
         return (lambda f: dataclasses.replace(f, labels=None)), None
     try:
-        seg = importlib.import_module("palletpilot.perception.segmentation")
+        from palletpilot.perception import segmentation as seg
+
         segmenter = seg.OnnxSegmenter(seg.DEFAULT_MODEL)
     except Exception as exc:  # ImportError, a missing model file (PerceptionError), ...
         return None, f"{type(exc).__name__}: {exc}"
@@ -252,8 +252,7 @@ def _calibrator(kind: str) -> tuple[Callable[[FrameBundle, list[FrameBundle], An
     if kind == "true":
         return (lambda f, cal, forks: Calibration(SE3.from_matrix(f.truth["T_forklift_camera_true"]), "true")), None
     try:
-        module = importlib.import_module("palletpilot.perception.calibration")
-        calibrate = module.calibrate
+        from palletpilot.perception.calibration import calibrate
     except Exception as exc:
         return None, f"{type(exc).__name__}: {exc}"
     return (lambda f, cal, forks: calibrate(cal, forks, method="model")), None

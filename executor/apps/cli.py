@@ -437,7 +437,9 @@ def _add_sim(sub: Any) -> None:
     render.add_argument("--at", help="node to stand at (default: the scenario's start)")
     render.add_argument("--seed", type=seed, help="override the scenario's seed (0 .. 2**64 - 1)")
     render.set_defaults(func=cmd_sim_render)
-    importlib.import_module("palletpilot.executor.apps.cli_robot").add_sim_serve(sim_sub)  # sim serve --ros
+    from palletpilot.executor.apps import cli_robot
+
+    cli_robot.add_sim_serve(sim_sub)  # sim serve --ros
 
 
 # Every command: name, help, and where it is defined (a function here, or the module next to the code it

@@ -20,7 +20,6 @@ Registered by `executor.cli` through `add_parsers(subparsers)`.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import math
 
@@ -38,7 +37,7 @@ def _with_labels(frame: FrameBundle, where: str, mode: str) -> FrameBundle:
     if frame.labels is not None or mode == "geometry" or (mode == "fused" and frame.rgb is None):
         return frame
     try:
-        seg = importlib.import_module("palletpilot.perception.segmentation")
+        from palletpilot.perception import segmentation as seg
     except ImportError:
         raise PerceptionError(
             f"{where}: labels: missing, and no segmentation model is available (labels are required)"
