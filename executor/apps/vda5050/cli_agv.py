@@ -38,6 +38,7 @@ import threading
 from importlib import metadata
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 from palletpilot.executor.adapters.mcap.recording_channels import add_foxglove_argument
 from palletpilot.executor.apps.cli_args import add_labels_argument, number, out_folder, seed
@@ -59,8 +60,6 @@ def cmd_agv(args: argparse.Namespace) -> int:
     from palletpilot.executor.apps.vda5050.agv import Agv
     from palletpilot.executor.apps.vda5050.config import load_config
     from palletpilot.executor.apps.vda5050.persist import JOURNAL_NAME, Persister, agv_meta, open_session
-    from palletpilot.executor.apps.vda5050.vehicle import BackendError, robot_backend, sim_backend
-    from palletpilot.perception.labels_mode import SIM_TRUTH, LabelsMode
 
     stop = threading.Event()
     agv: Agv | None = None
@@ -79,14 +78,7 @@ def cmd_agv(args: argparse.Namespace) -> int:
         folder = Path(args.report) if args.report else Path("out/agv") / cfg.serial_number
         journal_path = Path(args.journal) if args.journal else folder / JOURNAL_NAME
         session = open_session(journal_path, agv_meta(cfg.manufacturer, cfg.serial_number, cfg.map_name))
-        if args.sim:
-            backend = sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed, speed=args.sim_speed)
-        else:
-            if args.sim_speed != 1.0:
-                raise BackendError("--sim-speed: only with --sim (a real truck runs in real time)")
-            if args.labels == SIM_TRUTH:
-                raise BackendError("--labels truth: the simulator's labels exist only with --sim")
-            backend = robot_backend(loaded, args.robot, labels=LabelsMode(args.labels))
+        backend = _backend(args, loaded)
         try:
             folder.mkdir(parents=True, exist_ok=True)
             recorder = start_recording(folder, args.foxglove, wall=True, host=args.foxglove_host, flush_s=FLUSH_S)
@@ -94,8 +86,7 @@ def cmd_agv(args: argparse.Namespace) -> int:
             backend.close()
             raise
     except BaseException:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        _restore(previous)
         raise
 
     def log(line: str) -> None:
@@ -103,10 +94,7 @@ def cmd_agv(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr, flush=True)
 
     assert recorder is not None  # a report folder always
-    for line in recorder.errors:
-        print(f"agv: {line}", file=sys.stderr, flush=True)
-    if recorder.port is not None:
-        log(f"foxglove: live on ws://{args.foxglove_host}:{recorder.port}")
+    _announce(recorder, args.foxglove_host, log)
     agv = Agv(loaded, backend, log=log, software_version=_version(), recorder=recorder)
     persister = Persister(session.path, agv.checkpoint_doc, log=log)
     try:
@@ -117,8 +105,7 @@ def cmd_agv(args: argparse.Namespace) -> int:
     except BaseException:
         agv.finish_recording()
         backend.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        _restore(previous)
         raise
     agv.attach_journal(persister)
     persister.flush()  # the restored state and the headerIds reserved, committed before anything is sent
@@ -136,21 +123,53 @@ def cmd_agv(args: argparse.Namespace) -> int:
         stop.set()
         agv.stop()
         try:
-            reported = len(recorder.errors)
-            for line in agv.finish_recording()[reported:]:  # run.mcap finished, the live port freed
-                print(f"agv: {line}", file=sys.stderr, flush=True)
-            publisher.join(timeout=2.0)
-            agv.publish_state()
-            link.close()
+            _finish(agv, len(recorder.errors), publisher, link)
         finally:
             executing = agv.orders.executing()  # run() has returned: the last state
             persister.close(finish=not executing, reason=None if executing else "stopped with no order executing")
             log(f"agv: journal {session.path}: {_journal_line(persister.stats())}")
             backend.close()
-            for s, handler in previous.items():
-                signal.signal(s, handler)
+            _restore(previous)
     log("agv: stopped (connection OFFLINE)")
     return 0
+
+
+def _restore(previous: dict[signal.Signals, Any]) -> None:
+    """Put back the signal handlers `cmd_agv` replaced."""
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)
+
+
+def _announce(recorder: Any, host: str, log: Any) -> None:
+    """The recording's start-up errors (always printed) and the live view's address."""
+    for line in recorder.errors:
+        print(f"agv: {line}", file=sys.stderr, flush=True)
+    if recorder.port is not None:
+        log(f"foxglove: live on ws://{host}:{recorder.port}")
+
+
+def _backend(args: argparse.Namespace, loaded: Any) -> Any:
+    """The truck the AGV drives: the simulator (`--sim SCENARIO`) or a real one (`--robot robot.yaml`)."""
+    from palletpilot.executor.apps.vda5050.vehicle import BackendError, robot_backend, sim_backend
+    from palletpilot.perception.labels_mode import SIM_TRUTH, LabelsMode
+
+    if args.sim:
+        return sim_backend(loaded, args.sim, labels=args.labels, seed=args.seed, speed=args.sim_speed)
+    if args.sim_speed != 1.0:
+        raise BackendError("--sim-speed: only with --sim (a real truck runs in real time)")
+    if args.labels == SIM_TRUTH:
+        raise BackendError("--labels truth: the simulator's labels exist only with --sim")
+    return robot_backend(loaded, args.robot, labels=LabelsMode(args.labels))
+
+
+def _finish(agv: Any, reported: int, publisher: threading.Thread, link: Any) -> None:
+    """After `agv.run()`: finish run.mcap (its errors past the `reported` first), stop the publisher, send
+    the last state, close the broker link."""
+    for line in agv.finish_recording()[reported:]:  # run.mcap finished, the live port freed
+        print(f"agv: {line}", file=sys.stderr, flush=True)
+    publisher.join(timeout=2.0)
+    agv.publish_state()
+    link.close()
 
 
 def _journal_line(stats: dict[str, float]) -> str:
