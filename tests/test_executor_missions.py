@@ -326,7 +326,12 @@ def test_mission_diagram(tmp_path):
     assert main(["mission", "diagram", "pickup", "--out", str(out)]) == 0
     text = out.read_text()
     assert "stateDiagram-v2" in text and "estimate_pallet --> lower_forks: misaligned" in text
+    assert "[*] --> drive_to_pre_pallet" in text and "succeeded --> [*]" in text
+    assert "succeeded --> failed" not in text and "failed --> failed" not in text  # final states stay final
+    assert "calibrate --> failed: fail" in text and "[*]" not in text.split("stateDiagram-v2")[0]
     assert main(["mission", "diagram", "dance"]) == 2
+    png = tmp_path / "pickup.png"
+    assert main(["mission", "diagram", "pickup", "--out", str(png)]) == 2 and not png.exists()  # no text in a .png
 
 
 def test_a_delivery_whose_forks_feel_no_load_never_moves(tmp_path):

@@ -33,6 +33,7 @@ Commands:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import os
@@ -295,6 +296,10 @@ def cmd_examples(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+DIAGRAM_SUFFIXES = (".mmd", ".md", ".txt")
+"""What `mission diagram --out` writes: Mermaid text; image suffixes are refused rather than filled with text."""
+
+
 def cmd_mission_diagram(args: argparse.Namespace) -> int:
     """Write a task type's state machine as a mermaid diagram."""
     from palletpilot.executor.core.tasks import TASK_SPECS, mermaid
@@ -303,6 +308,13 @@ def cmd_mission_diagram(args: argparse.Namespace) -> int:
         print(f"mission diagram: unknown task '{args.task}' (known: {', '.join(TASK_SPECS)})", file=sys.stderr)
         return EXIT_BAD_INPUT
     text = mermaid(args.task)
+    if args.out and Path(args.out).suffix.lower() not in DIAGRAM_SUFFIXES:
+        print(
+            f"mission diagram: --out {args.out}: writes Mermaid text ({', '.join(DIAGRAM_SUFFIXES)}); render it with "
+            "mermaid-cli (mmdc -i FILE.mmd -o FILE.png) or any Mermaid viewer",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
     if args.out:
         write_atomic(args.out, text)
         print(f"wrote {args.out}")
@@ -522,6 +534,10 @@ def main(argv: Sequence[str] | None = None, extensions: Sequence[Extension] = ()
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `palletpilot ... | head`: the reader has gone; nothing more to say
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except MemoryError:
         print("palletpilot: out of memory (an input too large for this machine?)", file=sys.stderr)
         return EXIT_INTERNAL

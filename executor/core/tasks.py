@@ -254,8 +254,16 @@ def build_machine(task: str, graph: bool = False, initial: str | None = None) ->
 
 
 def mermaid(task: str) -> str:
-    """The state diagram of a task type as mermaid text (drawn by `transitions`)."""
-    return build_machine(task, graph=True).get_graph().draw(None)  # type: ignore[attr-defined]
+    """The state diagram of a task type as Mermaid `stateDiagram-v2` text, from its `TaskSpec`: the first
+    state is entered from the start, every transition is drawn once with its trigger, a `fail` from `*`
+    leaves every state that is not final, and the final states end the task."""
+    spec = TASK_SPECS[task]
+    lines = ["stateDiagram-v2", f"    [*] --> {spec.states[0]}"]
+    for trigger, source, dest in spec.transitions:
+        sources = [st for st in spec.states if st not in _FINAL] if source == "*" else [source]
+        lines += [f"    {src} --> {dest}: {trigger}" for src in sources]
+    lines += [f"    {final} --> [*]" for final in _FINAL if final in spec.states]
+    return "\n".join(lines) + "\n"
 
 
 def _pallet_height(ctx: Context) -> float:
