@@ -2,12 +2,14 @@
 and the exit code of a mission's outcome.
 
 Public API: `EXIT_OK`, `EXIT_FAILED`, `EXIT_BAD_INPUT`, `EXIT_WRITE_FAILED`, `EXIT_INTERNAL`,
-`mission_outcome`.
+`mission_outcome`, `task_line`.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -27,6 +29,31 @@ EXIT_INTERNAL = 70
 """A bug (EX_SOFTWARE): the traceback goes to a log file, one line to stderr."""
 
 
+def task_line(task: Any) -> str:
+    """One finished task as a shift lead reads it (a `TaskResult`): type, node, outcome and reason, how long it
+    took; for a Pickup how far off its node the pallet was found first (lateral, along, yaw), the re-plans and
+    the estimates."""
+    why = f" ({task.reason})" if task.reason else ""
+    line = f"{task.type:9s} {task.node or '':14s} {task.result}{why} in {task.end_s - task.start_s:.1f} s"
+    estimates = task.record.get("estimates", [])
+    if estimates:
+        first = estimates[0]
+        replans = len(task.record.get("temporary_nodes", []))
+        line += (
+            f": pallet found {abs(first['lateral_mm']):.0f} mm sideways, {abs(first['longitudinal_mm']):.0f} mm along, "
+            f"{abs(first['yaw_deg']):.1f} deg off its node; {replans} re-plan(s), {len(estimates)} estimate(s)"
+        )
+    return line
+
+
+def _totals(trajectory: list[tuple[float, float, float, float]]) -> str:
+    """` in T s, D m driven` of a run's localization trajectory (t, x, y, yaw), or nothing without one."""
+    if len(trajectory) < 2:
+        return ""
+    distance = sum(math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in itertools.pairwise(trajectory))
+    return f" in {trajectory[-1][0] - trajectory[0][0]:.1f} s, {distance:.1f} m driven"
+
+
 def mission_outcome(result: Any, report: Path | None, as_json: bool, controls: Controls, vehicle: str) -> int:
     """Print a finished mission's summary on stdout (`as_json`: the report's summary as JSON, else one
     line per task and the outcome), write errors and the failed task on stderr, and return the exit
@@ -37,11 +64,10 @@ def mission_outcome(result: Any, report: Path | None, as_json: bool, controls: C
     if as_json:
         print(json.dumps(result.summary, indent=2))
     else:
-        for task in result.summary["tasks"]:
-            why = f" ({task['reason']})" if task["reason"] else ""
-            print(f"{task['type']:9s} {task['node'] or '':14s} {task['result']}{why}, {task['attempts']} estimate(s)")
+        for task in result.runner.results:
+            print(task_line(task))
         where = f"; report in {report}/" if report is not None else ""
-        print(f"mission {'succeeded' if result.success else 'FAILED'}{where}")
+        print(f"mission {'succeeded' if result.success else 'FAILED'}{_totals(result.runner.trajectory)}{where}")
     for line in result.write_errors:
         print(f"error: {line}", file=sys.stderr)
     if result.success:

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from types import SimpleNamespace
 
 from palletpilot.executor.apps.cli_args import out_folder
+from palletpilot.executor.apps.cli_outcome import task_line
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -23,9 +25,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"success": doc["success"], "tasks": [_summary(t) for t in doc["tasks"]]}, indent=2))
     else:
-        for t in doc["tasks"]:
-            why = f" ({t['reason']})" if t["reason"] else ""
-            print(f"{t['type']:9s} {t['node'] or '':14s} {t['result']}{why}, {t['attempts']} estimate(s)")
+        for t in doc["tasks"]:  # report.json's task entries hold the task's record (estimates, ...) at top level
+            fields = {k: t.get(k) for k in ("type", "node", "result", "reason")}
+            print(task_line(SimpleNamespace(**fields, start_s=t["start_s"], end_s=t["end_s"], record=t)))
         print(f"mission {'succeeded' if doc['success'] else 'FAILED'} (replayed); report in {path.parent}/")
     return 0
 

@@ -1,0 +1,29 @@
+"""The closing summary of `run` and `robot`: what a shift lead reads at the end of a mission."""
+
+from __future__ import annotations
+
+from palletpilot.executor.apps.cli_outcome import task_line
+from palletpilot.executor.core.results import TaskResult
+from palletpilot.executor.ports.vocabulary import Outcome
+
+
+def _estimate(lateral: float, along: float, yaw: float, aligned: bool) -> dict:
+    return {"lateral_mm": lateral, "longitudinal_mm": along, "yaw_deg": yaw, "aligned": aligned}
+
+
+def test_a_pickup_line_says_how_far_off_the_pallet_was_the_replans_and_the_time():
+    task = TaskResult(index=0, type="pickup", node="floor_b2", result=Outcome.SUCCEEDED, attempts=2)
+    task.start_s, task.end_s = 3.0, 74.25
+    task.record = {
+        "estimates": [_estimate(-195.2, 120.4, -5.93, False), _estimate(2.0, -1.0, 0.1, True)],
+        "temporary_nodes": [{"pallet": "tmp_p1", "pre_pallet": "tmp_pp1"}],
+    }
+    line = task_line(task)
+    assert line.startswith("pickup    floor_b2       succeeded in 71.2 s")
+    assert "found 195 mm sideways, 120 mm along, 5.9 deg off its node; 1 re-plan(s), 2 estimate(s)" in line
+
+
+def test_other_tasks_give_their_outcome_reason_and_time_without_estimates():
+    task = TaskResult(index=1, type="delivery", node="drop", result=Outcome.FAILED, reason=None)
+    task.start_s, task.end_s = 80.0, 100.0
+    assert task_line(task) == "delivery  drop           failed in 20.0 s"
