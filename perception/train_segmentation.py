@@ -399,6 +399,16 @@ def _worker_batch(job: tuple[np.ndarray, tuple[int, int], float, int, int]) -> t
     return _batch_arrays(_WORKER_FRAMES, idx, crop, focus, np.random.default_rng([seed, step, 11]))
 
 
+def _worker_signals() -> None:
+    """A batch worker takes the default SIGTERM (die) and ignores SIGINT: a handler inherited from the parent
+    (a Python one runs only between bytecodes) would leave a worker blocked on a full result pipe alive when
+    the pool is closed with batches still pending, and the parent waiting for it forever."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class BatchSource:
     """Training batches in order: made in this process (`workers` 0: one generator, the historic runs' crops)
     or by `workers` forked processes ahead of the training loop (each batch seeded by (seed, step), so the
@@ -417,7 +427,7 @@ class BatchSource:
 
             global _WORKER_FRAMES
             _WORKER_FRAMES = frames
-            self.pool = multiprocessing.get_context("fork").Pool(workers)
+            self.pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_signals)
             self.ahead = 4 * workers
 
     def _next_idx(self) -> np.ndarray:
