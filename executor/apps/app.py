@@ -396,7 +396,8 @@ def _execute(
         write_errors += recorder.errors
     extra = _extra(sim, clock, options.adapt, run_id, point, injector, runner)
     truth = [(p.T_world_pallet).to_se2() for p in sim.pallets]
-    report = write_run_report(folder, runner, success, extra, write_errors, truth, sim.obstacle_outlines())
+    initial = [(p.initial if p.initial is not None else p.T_world_pallet).to_se2() for p in sim.pallets]
+    report = write_run_report(folder, runner, success, extra, write_errors, truth, sim.obstacle_outlines(), initial)
     return SimRun(success, runner, sim, summary(success, runner.results), report, write_errors)
 
 

@@ -176,10 +176,11 @@ def write_run_report(
     write_errors: list[str],
     truth_pallets: list[SE2] | None = None,
     obstacles: list[tuple[str, str, np.ndarray]] | None = None,
+    truth_initial: list[SE2] | None = None,
 ) -> Path | None:
     """report.json and trajectory.png of a finished run in `folder` (None: no report); returns the JSON's
-    path, or None with the reason added to `write_errors` when it could not be written. `truth_pallets`,
-    `obstacles` (world frame): what only a simulator knows."""
+    path, or None with the reason added to `write_errors` when it could not be written. `truth_pallets`
+    (at the end), `truth_initial` (at the start), `obstacles` (world frame): what only a simulator knows."""
     if folder is None:
         return None
     try:
@@ -194,6 +195,7 @@ def write_run_report(
             truth_pallets=truth_pallets,
             extra=extra,
             obstacles=obstacles,
+            truth_initial=truth_initial,
         )
     except OutputError as exc:
         write_errors.append(str(exc))
