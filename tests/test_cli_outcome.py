@@ -27,3 +27,20 @@ def test_other_tasks_give_their_outcome_reason_and_time_without_estimates():
     task = TaskResult(index=1, type="delivery", node="drop", result=Outcome.FAILED, reason=None)
     task.start_s, task.end_s = 80.0, 100.0
     assert task_line(task) == "delivery  drop           failed in 20.0 s"
+
+
+def test_a_failed_task_is_numbered_from_one_as_the_progress_line_numbers_it(capsys):
+    from types import SimpleNamespace
+
+    from palletpilot.executor.apps.cli_outcome import mission_outcome
+    from palletpilot.executor.core.controls import Controls
+    from palletpilot.executor.ports.vocabulary import Reason
+
+    done = TaskResult(index=0, type="pickup", node="floor_b2", result=Outcome.SUCCEEDED)
+    failed = TaskResult(index=1, type="delivery", node="drop", result=Outcome.FAILED, reason=Reason.CANCELLED)
+    failed.message = "cancelled by the operator"
+    runner = SimpleNamespace(results=[done, failed], trajectory=[], mission=SimpleNamespace(tasks=[0, 1, 2]))
+    result = SimpleNamespace(summary={}, success=False, write_errors=[], runner=runner)
+    mission_outcome(result, None, False, Controls(), "vehicle")
+    err = capsys.readouterr().err
+    assert "mission failed: task 2 of 3 (delivery): cancelled: cancelled by the operator; vehicle stopped" in err

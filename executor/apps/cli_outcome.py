@@ -75,7 +75,8 @@ def mission_outcome(result: Any, report: Path | None, as_json: bool, controls: C
     failed = next((t for t in result.runner.results if t.result != Outcome.SUCCEEDED), None)
     if failed is not None:
         why = f"{failed.reason}: {failed.message}"
-        print(f"mission failed: task {failed.index} ({failed.type}): {why}; {vehicle} stopped", file=sys.stderr)
+        number = f"{failed.index + 1} of {len(result.runner.mission.tasks)}"  # from 1, as the progress line counts
+        print(f"mission failed: task {number} ({failed.type}): {why}; {vehicle} stopped", file=sys.stderr)
     if controls.cancel_signal is not None:
         return 128 + controls.cancel_signal
     meta = None if failed is None or failed.reason is None else vocabulary.info(failed.reason)

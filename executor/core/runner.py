@@ -190,9 +190,11 @@ class Runner:
             if remaining is not None:
                 togo = f" {remaining:5.1f} m to go"
         paused = " | PAUSED" if self._paused_since is not None else ""
+        # the Pickup's pallet estimates so far, as report.json's `attempts` counts them (other tasks make none)
+        estimates = f" | estimate {self.ctx.attempts}" if self.ctx.attempts else ""
         line = (
             f"[{self.clock.now():7.1f} s] task {task.index + 1}/{len(self.mission.tasks)} {task.type}"
-            f" {task.node or ''} | {state} | attempt {max(task.attempts, 1)}{togo}{paused}"
+            f" {task.node or ''} | {state}{estimates}{togo}{paused}"
         )
         self.progress.show((task.index, state, bool(paused)), line)
 
