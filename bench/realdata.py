@@ -351,18 +351,18 @@ class _Tally:
         self.front_hits += int((union & pallet).sum())
         self.labels += np.bincount(labels[union], minlength=256)
         covered = 0
+        boxes = [grown_box(front, labels.shape) for front in photo.fronts]
         near = np.zeros(labels.shape, bool)  # inside some front's grown box
-        for front in photo.fronts:
-            near[grown_box(front, labels.shape)] = True
+        for box in boxes:
+            near[box] = True
         self.photo_px += labels.size
         self.pallet_px += int(pallet.sum())
         self.pallet_outside += int((pallet & ~near).sum())
-        for front, mask in zip(photo.fronts, masks, strict=True):
+        for front, mask, box in zip(photo.fronts, masks, boxes, strict=True):
             n, hits = int(mask.sum()), int((mask & pallet).sum())
             self.recalls.append(hits / n)
             covered += hits >= COVERED_SHARE * n
             self.heights.append((front.bbox[3] / photo.height, n, hits))
-            box = grown_box(front, labels.shape)
             inter, either = int((pallet[box] & union[box]).sum()), int((pallet[box] | union[box]).sum())
             self.box_inter += inter
             self.box_union += either

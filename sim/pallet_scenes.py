@@ -42,6 +42,7 @@ import numpy as np
 
 from palletpilot.geometry.fileio import write_atomic
 from palletpilot.perception.frames import SemanticClass
+from palletpilot.perception.segmentation_data import LABELS_SUFFIX
 from palletpilot.sim.box_raster import Box, Canvas
 
 DRIVABLE = int(SemanticClass.DRIVABLE)
@@ -544,7 +545,7 @@ def _write_frame(args: tuple[Path, int, int, SceneSettings]) -> str:
     ok2, lab = cv2.imencode(".png", labels)
     if not (ok and ok2):
         raise RuntimeError(f"{name}: PNG encoding failed")
-    write_atomic(out / f"{name}_labels.png", lab.tobytes())
+    write_atomic(out / f"{name}{LABELS_SUFFIX}", lab.tobytes())
     write_atomic(out / f"{name}.png", png.tobytes())
     return name
 

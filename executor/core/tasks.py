@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 from palletpilot.executor.core.behaviour import Behaviour, Context, Settings, TemporaryNodes
 from palletpilot.executor.core.driving import Charge, FollowRoute, ReturnToRoadmap, SetForks, Wait, travel_height
@@ -233,22 +232,18 @@ class MachineModel:
     state: str
 
 
-def build_machine(task: str, graph: bool = False, initial: str | None = None) -> MachineModel:
-    """A fresh machine of a task type from `TASK_SPECS`, in its first state or `initial` (a resume);
-    with `graph`, one that can draw itself (mermaid)."""
+def build_machine(task: str, initial: str | None = None) -> MachineModel:
+    """A fresh machine of a task type from `TASK_SPECS`, in its first state or `initial` (a resume)."""
     from transitions import Machine
-    from transitions.extensions import GraphMachine
 
     spec = TASK_SPECS[task]
     model = MachineModel()
-    kwargs: dict[str, Any] = {"graph_engine": "mermaid", "title": f"{task} task"} if graph else {}
-    (GraphMachine if graph else Machine)(
+    Machine(
         model=model,
         states=list(spec.states),
         transitions=[{"trigger": t, "source": s, "dest": d} for t, s, d in spec.transitions],
         initial=initial or spec.states[0],
         auto_transitions=False,
-        **kwargs,
     )
     return model
 
