@@ -11,7 +11,9 @@ map, no Open3D), so that thousands of frames come cheaply on any machine:
   within the ranges of real pallets and scaled as a whole (scale models look the same to a camera); each
   board and block its own wood tone, sometimes grey, painted or dirty; some loaded (cartons, film-wrapped
   blocks: `CARGO`, the pallet then `PALLET_FULL`), some stacked, on the floor or on a table;
-- clutter: boxes and crates of cardboard, plastic and wood (`OTHER_OBJECT`), tables (`OTHER_OBJECT`);
+- clutter (`sim.scene_props`): boxes and crates of cardboard, plastic and wood, pallet look-alikes, shelving
+  full of parts, drawer cabinets, tables (`OTHER_OBJECT`), people (`PERSON`), cables on the floor and
+  shapes close to the lens painted over the frame;
 - a floor (`DRIVABLE`: concrete, epoxy, artificial turf with painted lines, tiles, dark rubber, wooden
   boards) and walls (`VERTICAL`) with posters, doors and windows;
 - light: a directional light with ambient share, colour temperature; pocket interiors and the floor
@@ -44,6 +46,18 @@ from palletpilot.geometry.fileio import write_atomic
 from palletpilot.perception.frames import SemanticClass
 from palletpilot.perception.segmentation_data import LABELS_SUFFIX
 from palletpilot.sim.box_raster import Box, Canvas
+from palletpilot.sim.scene_props import (
+    clutter_box,
+    distractor,
+    draw_cables,
+    drawer_cabinet,
+    filled_shelf,
+    flying_shapes,
+    person,
+    rot_z,
+    table,
+    wood,
+)
 
 DRIVABLE = int(SemanticClass.DRIVABLE)
 VERTICAL = int(SemanticClass.VERTICAL)
@@ -106,26 +120,6 @@ def _textures(rng: np.random.Generator) -> list[np.ndarray]:
 # -- geometry -------------------------------------------------------------------------------------
 
 
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _wood(rng: np.random.Generator) -> np.ndarray:
-    """A wood tone (RGB 0..1): pale pine to brown, sometimes weathered grey or painted."""
-    k = rng.random()
-    if k < 0.72:
-        base = np.array([0.78, 0.62, 0.42]) * rng.uniform(0.55, 1.2) + rng.normal(0, 0.03, 3)
-    elif k < 0.86:
-        base = np.array([0.55, 0.53, 0.50]) * rng.uniform(0.6, 1.3)
-    elif k < 0.93:
-        base = np.array([0.85, 0.78, 0.60]) * rng.uniform(0.8, 1.15)  # pressed chip / fresh pine
-    else:
-        base = rng.choice([[0.15, 0.3, 0.6], [0.6, 0.15, 0.1], [0.9, 0.9, 0.85], [0.2, 0.2, 0.2]])
-        base = np.asarray(base) * rng.uniform(0.8, 1.1)
-    return np.clip(base, 0.03, 1.0)
-
-
 def pallet_boxes(rng: np.random.Generator, scale: float, loaded: bool) -> tuple[list[Box], float]:
     """The boxes of one pallet in its own frame (x along its length, z up, origin on the floor at its centre).
 
@@ -134,7 +128,7 @@ def pallet_boxes(rng: np.random.Generator, scale: float, loaded: bool) -> tuple[
     0.75..1.2, blocks 0.07..0.12 high; a stringer pallet one time in five.
     """
     label = PALLET_FULL if loaded else PALLET_EMPTY
-    tone = _wood(rng)
+    tone = wood(rng)
     tex_block = 3 if rng.random() < 0.35 else 2
     boxes: list[Box] = []
 
@@ -223,7 +217,7 @@ def _cargo(rng: np.random.Generator, footprint: tuple[float, float], z: float) -
                 boxes.append(
                     Box(
                         size,
-                        _rot_z(rng.normal(0, 0.03)),
+                        rot_z(rng.normal(0, 0.03)),
                         np.array([cx, cy, z + (k + 0.5) * ch]),
                         CARGO,
                         tint,
@@ -239,104 +233,6 @@ def _place(boxes: list[Box], R: np.ndarray, t: np.ndarray) -> list[Box]:
     return [
         Box(b.size, R @ b.R, R @ b.t + t, b.label, b.colour, b.texture, b.texel_m, b.grain_axis, b.dark) for b in boxes
     ]
-
-
-def _clutter_box(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z: float = 0.0) -> Box:
-    """A box, crate or cabinet standing at `centre_xy` on height `z` (`OTHER_OBJECT`)."""
-    size = np.array([rng.uniform(0.2, 1.5), rng.uniform(0.2, 1.2), rng.uniform(0.1, 1.8)]) * scale
-    k = rng.random()
-    if k < 0.35:
-        colour, tex = np.array([0.72, 0.56, 0.38]) * rng.uniform(0.7, 1.2), 6
-    elif k < 0.55:
-        colour, tex = _wood(rng), 1  # wooden crates and furniture: wood is not always a pallet
-    else:
-        colour, tex = rng.random(3) ** 0.7, int(rng.choice([0, 0, 4]))
-    t = np.array([centre_xy[0], centre_xy[1], z + size[2] / 2])
-    return Box(size, _rot_z(rng.uniform(0, np.pi)), t, OTHER, np.clip(colour, 0, 1), tex, scale / 100, 0)
-
-
-def _distractor(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z: float = 0.0) -> list[Box]:
-    """Something with a pallet's look that is not a pallet (`OTHER_OBJECT`): a shelf unit (uprights and shelf
-    boards), a slatted wooden crate, a stool or chair on legs, or a ribbed plastic bin, standing at `centre_xy`."""
-    R = _rot_z(rng.uniform(0, np.pi))
-    base = np.array([centre_xy[0], centre_xy[1], z])
-    k = rng.random()
-    parts: list[tuple[np.ndarray, np.ndarray]] = []  # (size, centre in its own frame)
-    if k < 0.3:  # shelf unit
-        w, d, h = rng.uniform(0.6, 2.0), rng.uniform(0.3, 0.6), rng.uniform(0.8, 2.2)
-        post = rng.uniform(0.03, 0.06)
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                parts.append((np.array([post, post, h]), np.array([sx * (w - post) / 2, sy * (d - post) / 2, h / 2])))
-        for zs in np.linspace(0.05, h - 0.02, int(rng.integers(2, 6))):
-            parts.append((np.array([w, d, rng.uniform(0.015, 0.04)]), np.array([0.0, 0.0, zs])))
-        colour, tex = (
-            np.clip(rng.choice([[0.2, 0.3, 0.7], [0.85, 0.85, 0.85], [0.9, 0.5, 0.1], [0.3, 0.3, 0.3]]), 0, 1),
-            0,
-        )
-    elif k < 0.55:  # slatted crate
-        w, d, h = rng.uniform(0.3, 1.0), rng.uniform(0.3, 0.8), rng.uniform(0.2, 0.7)
-        n = int(rng.integers(3, 7))
-        slat = h / (2 * n - 1)
-        for i in range(n):
-            zc = (2 * i + 0.5) * slat
-            for sy in (-1, 1):
-                parts.append((np.array([w, 0.02, slat]), np.array([0.0, sy * d / 2, zc])))
-            for sx in (-1, 1):
-                parts.append((np.array([0.02, d, slat]), np.array([sx * w / 2, 0.0, zc])))
-        colour, tex = _wood(rng), 1
-    elif k < 0.8:  # stool, chair or small table on four legs
-        w, h = rng.uniform(0.3, 0.8), rng.uniform(0.35, 0.8)
-        leg = rng.uniform(0.02, 0.05)
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                parts.append((np.array([leg, leg, h]), np.array([sx * (w - leg) / 2, sy * (w - leg) / 2, h / 2])))
-        parts.append((np.array([w, w, rng.uniform(0.02, 0.06)]), np.array([0.0, 0.0, h])))
-        colour = _wood(rng) if rng.random() < 0.5 else np.clip(rng.random(3), 0.05, 1)
-        tex = 1
-    else:  # ribbed bin
-        w, d, h = rng.uniform(0.3, 0.7), rng.uniform(0.25, 0.5), rng.uniform(0.15, 0.4)
-        parts.append((np.array([w, d, h]), np.array([0.0, 0.0, h / 2])))
-        for x in np.linspace(-w / 2, w / 2, int(rng.integers(3, 8))):
-            parts.append((np.array([0.02, d + 0.02, h]), np.array([x, 0.0, h / 2])))
-        colour, tex = np.clip(rng.random(3) ** 0.6, 0.05, 1), 0
-    colour = np.asarray(colour, float)
-    return [
-        Box(
-            size * scale,
-            R,
-            base + R @ (centre * scale),
-            OTHER,
-            np.clip(colour * rng.uniform(0.85, 1.1), 0, 1),
-            tex,
-            scale / 150,
-            0,
-        )
-        for size, centre in parts
-    ]
-
-
-def _table(
-    rng: np.random.Generator, centre_xy: np.ndarray, top_size: np.ndarray, yaw: float
-) -> tuple[list[Box], float]:
-    """A table (top and four legs, `OTHER_OBJECT`) and the height of its top (metres)."""
-    h = rng.uniform(0.5, 0.95)
-    th = rng.uniform(0.02, 0.05)
-    colour = np.clip(
-        rng.choice([[0.9, 0.9, 0.88], [0.6, 0.45, 0.3], [0.1, 0.1, 0.1], [0.7, 0.72, 0.75]]) * rng.uniform(0.8, 1.1),
-        0,
-        1,
-    )
-    R = _rot_z(yaw)
-    c = np.array([centre_xy[0], centre_xy[1], 0.0])
-    boxes = [
-        Box(np.array([top_size[0], top_size[1], th]), R, c + np.array([0.0, 0.0, h - th / 2]), OTHER, colour, 0, 0.01)
-    ]
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            leg = R @ np.array([sx * (top_size[0] / 2 - 0.05), sy * (top_size[1] / 2 - 0.05), (h - th) / 2])
-            boxes.append(Box(np.array([0.04, 0.04, h - th]), R, c + leg, OTHER, colour * 0.7, 0, 0.01))
-    return boxes, h
 
 
 # -- the scene ------------------------------------------------------------------------------------
@@ -359,7 +255,7 @@ def _floor_and_walls(
     elif k < 0.72:
         colour, tex = np.array([0.1, 0.1, 0.11]) * rng.uniform(0.5, 2.5), 4  # dark rubber or black
     elif k < 0.85:
-        colour, tex = _wood(rng), 1
+        colour, tex = wood(rng), 1
     else:
         colour, tex = rng.random(3) * 0.9 + 0.05, int(rng.choice([0, 4, 5]))
     e = extent
@@ -370,7 +266,7 @@ def _floor_and_walls(
     if rng.random() < 0.6:  # painted lines
         for _ in range(int(rng.integers(1, 4))):
             y, yaw, w = rng.uniform(-e / 3, e / 3), rng.uniform(0, np.pi), rng.uniform(0.03, 0.12) * scale
-            R = _rot_z(yaw)
+            R = rot_z(yaw)
             line = np.array(
                 [[-e, y - w / 2, 0.001], [e, y - w / 2, 0.001], [e, y + w / 2, 0.001], [-e, y + w / 2, 0.001]]
             )
@@ -384,7 +280,7 @@ def _floor_and_walls(
     )
     dist = rng.uniform(0.4, 0.95) * e
     for side in rng.permutation(4)[: int(rng.integers(2, 5))]:
-        R = _rot_z(side * np.pi / 2)
+        R = rot_z(side * np.pi / 2)
         quad = np.array([[dist, -e, 0], [dist, e, 0], [dist, e, height], [dist, -e, height]]) @ R.T
         canvas.polygon(
             quad,
@@ -442,6 +338,35 @@ def _camera(rng: np.random.Generator, target: np.ndarray, size_m: float, setting
     return K, R_cw, -R_cw @ eye
 
 
+def _clutter(rng: np.random.Generator, placed: list[np.ndarray], scale: float) -> list[Box]:
+    """The scene's clutter around the pallets at `placed` (world xy, metres): a sparse room or a dense workshop.
+
+    Boxes and crates, pallet look-alikes (shelves, slatted crates, stools, bins), shelving full of parts,
+    drawer cabinets and people (`sim.scene_props`), none closer to a pallet than 1.2 pallet scales.
+    """
+    objects: list[Box] = []
+    dense = rng.random() < 0.5
+    s = max(scale, 0.2)
+    for _ in range(int(rng.integers(8, 30) if dense else rng.integers(2, 15))):
+        xy = rng.normal(0, 3.0 * max(scale, 0.3), 2)
+        if any(np.linalg.norm(xy - q) <= 1.2 * scale for q in placed):
+            continue
+        k = rng.random()
+        if k < 0.35:
+            objects += distractor(rng, xy, s)
+        elif k < 0.7:
+            objects.append(clutter_box(rng, xy, s))
+        elif k < 0.85:
+            objects += filled_shelf(rng, xy, s)
+        else:
+            objects += drawer_cabinet(rng, xy, s)
+    for _ in range(int(rng.choice([0, 0, 0, 1, 1, 2]))):
+        xy = rng.normal(0, 2.5 * max(scale, 0.4), 2)
+        if all(np.linalg.norm(xy - q) > 0.8 * max(scale, 0.5) for q in placed):
+            objects += person(rng, xy)
+    return objects
+
+
 def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings()) -> tuple[np.ndarray, np.ndarray]:
     """Frame `index` of the procedural set `seed`: RGB (H, W, 3) uint8 and class ids (H, W) uint8 (module docstring)."""
     rng = np.random.default_rng([seed, index, 37])
@@ -460,8 +385,8 @@ def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings(
     centre = np.zeros(2)
     if on_table:
         top = np.array([rng.uniform(1.2, 3.0), rng.uniform(0.6, 1.2)]) * max(scale * 3, 1.0)
-        table, support_z = _table(rng, centre, top, rng.uniform(0, np.pi))
-        objects += table
+        table_boxes, support_z = table(rng, centre, top, rng.uniform(0, np.pi))
+        objects += table_boxes
     n_pallets = int(rng.choice([1, 1, 2, 2, 3, 4, 5]))
     placed: list[np.ndarray] = []
     footprints: list[tuple[np.ndarray, float, float, float]] = []  # centre, yaw, length, support height
@@ -484,7 +409,7 @@ def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings(
             if level < stack - 1:  # a pallet under another one carries it
                 for b in boxes:
                     b.label = PALLET_FULL
-            R = _rot_z(yaw + rng.normal(0, 0.05))
+            R = rot_z(yaw + rng.normal(0, 0.05))
             t = np.array([xy[0], xy[1], z]) + np.append(rng.normal(0, 0.01 * scale, 2), 0)
             objects += _place(boxes, R, t)
             if loaded:
@@ -494,22 +419,16 @@ def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings(
         footprints.append((xy, yaw, 2 * max(float(b.t[0] + b.size[0] / 2) for b in boxes), base_z))
         if p == 0:
             target = np.array([xy[0], xy[1], support_z + 0.5 * (z - support_z)])
-    for _ in range(int(rng.integers(2, 15))):
-        xy = rng.normal(0, 3.0 * max(scale, 0.3), 2)
-        if all(np.linalg.norm(xy - q) > 1.2 * scale for q in placed):
-            if rng.random() < 0.45:
-                objects += _distractor(rng, xy, max(scale, 0.2))
-            else:
-                objects.append(_clutter_box(rng, xy, max(scale, 0.2)))
+    objects += _clutter(rng, placed, scale)
     if on_table:  # small things on the table beside the pallet
         for _ in range(int(rng.integers(0, 4))):
             xy = rng.uniform(-0.5, 0.5, 2) * top
             if all(np.linalg.norm(xy - q) > 0.9 * scale for q in placed):
                 small = 0.5 * scale
                 objects += (
-                    _distractor(rng, xy, small, support_z)
+                    distractor(rng, xy, small, support_z)
                     if rng.random() < 0.5
-                    else [_clutter_box(rng, xy, small, support_z)]
+                    else [clutter_box(rng, xy, small, support_z)]
                 )
 
     K, R_cw, t_cw = _camera(rng, target, 1.2 * scale, settings)
@@ -519,7 +438,7 @@ def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings(
         grow = rng.uniform(1.0, 1.15)
         half = np.array([0.5 * length * grow, 0.45 * length * grow])
         quad = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half
-        quad = quad @ _rot_z(yaw)[:2, :2].T + xy
+        quad = quad @ rot_z(yaw)[:2, :2].T + xy
         shadow = np.column_stack([quad, np.full(4, z + 0.001)])
         below, colour, tex, texel = (
             (DRIVABLE, floor_colour, floor_tex, floor_texel) if z == 0.0 else (OTHER, None, 0, 0.01)
@@ -534,6 +453,9 @@ def render_scene(seed: int, index: int, settings: SceneSettings = SceneSettings(
     rgb[sky] = np.clip(rng.uniform(0.4, 1.0) * np.array([1.0, 1.0, 0.97]), 0, 1)
     labels = canvas.labels.copy()
     labels[sky] = VERTICAL
+    draw_cables(rgb, labels, rng, DRIVABLE)
+    flying_shapes(rgb, labels, rng, textures)
+    rgb = np.clip(rgb, 0.0, 1.0)
     return (rgb * 255 + 0.5).astype(np.uint8), labels
 
 
