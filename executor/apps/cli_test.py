@@ -26,6 +26,7 @@ from pathlib import Path
 
 from palletpilot.executor.apps.cli_args import count, out_file, out_folder
 from palletpilot.executor.apps.suite import RunSpec, SuiteError, load_suite
+from palletpilot.executor.apps.suite_inputs import gather_inputs
 from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ray
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
@@ -82,7 +83,8 @@ def cmd_test(args: argparse.Namespace) -> int:
         def progress(r: RunResult, done: int) -> None:
             print(progress_line(r, done, len(specs)), file=sys.stderr, flush=True)
 
-        outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress)
+        inputs = gather_inputs(specs, Path(args.suite))
+        outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress, inputs)
         results, interrupted, jobs = outcome.results, outcome.interrupted, outcome.jobs
     else:
         results = _run_all(specs, report, jobs)
