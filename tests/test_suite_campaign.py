@@ -117,3 +117,32 @@ def test_pallet_draws_bin_per_node_and_the_lists_are_capped(monkeypatch):
 def test_a_count_bins_whole_numbers_and_a_point_span_one_bin():
     assert Parameter("n", Unit.COUNT, (0, 2), lambda d: None).bins() == [(0.0, 0.0), (1.0, 1.0), (2.0, 2.0)]
     assert Parameter("x", Unit.M, (0.5, 0.5), lambda d: None).bins() == [(0.5, 0.5)]
+
+
+# -- `palletpilot bench campaign` -------------------------------------------------------------------
+
+
+def test_bench_campaign_draws_its_runs_from_the_example_suite():
+    from palletpilot.bench.campaign import campaign_specs
+
+    family = campaign_specs("floor_envelope", 5, 9)
+    assert [s.label for s in family] == [f"floor_envelope#{k}" for k in range(5)]
+    assert family[:3] != campaign_specs("floor_envelope", 3, 1)  # --seed moves the draws
+    assert [s.drawn for s in family[:2]] == [s.drawn for s in campaign_specs("floor_envelope", 2, 9)]
+    plain = campaign_specs("person_on_the_route", 3, 2)
+    assert [s.seed for s in plain] == [21000, 21001, 21002] and plain[0].scenario_path is not None
+
+
+def test_bench_campaign_prints_its_figures_and_refuses_an_unknown_case(capsys):
+    assert main(["bench", "--json", "campaign", "--runs", "3", "--case", "unknown_node", "--jobs", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["runs"], out["executor"], out["jobs"], out["met"], out["outcomes"]) == (
+        3,
+        "local",
+        1,
+        3,
+        {"rejected": 3},
+    )
+    assert out["runs_per_minute"] > 0 and len(out["verdicts_sha256"]) == 64 and out["ray_start_s"] is None
+    assert main(["bench", "campaign", "--case", "nope"]) == 2
+    assert capsys.readouterr().err.startswith("--case: no case 'nope' in ")
