@@ -39,7 +39,8 @@ from palletpilot.geometry.fileio import read_yaml
 
 MAX_INPUT_BYTES = 1 << 30
 """The most input bytes a suite sends to the cluster (1 GiB): the object store holds them once."""
-YAML_SUFFIXES = (".yaml", ".yml")
+YAML_SUFFIXES = (".yaml", ".yml", ".json")
+"""Files read as documents (`read_yaml`): the file names in them are followed and rewritten."""
 _NAME_CHARS = 4096  # longer strings are no file names
 
 
@@ -143,7 +144,7 @@ class _Gatherer:
         self.absolute_names: set[str] = set()
 
     def add(self, path: Path, follow: bool = True) -> None:
-        """Add `path` (when it is a file) and, for YAML, the files it names."""
+        """Add `path` (when it is a file) and, for YAML (or JSON), the files it names."""
         key = os.path.abspath(path)
         if key in self.files or not os.path.isfile(key):
             return
