@@ -61,6 +61,7 @@ class Inputs:
 
     def materialise(self, tmp: Path) -> Placed:
         """Write the files under `tmp` (a fresh folder on the worker) and say where they are."""
+        tmp = tmp.resolve()  # restore() matches the paths a run may print resolved (/tmp -> /private/tmp)
         tree, cwd_link = tmp / "t", tmp / "c"
         names = sorted(self.absolute_names, key=len, reverse=True)
         pattern = re.compile(r"(?<![\w./-])(?:" + "|".join(re.escape(n) for n in names) + ")") if names else None
