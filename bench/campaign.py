@@ -117,7 +117,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         import ray
 
         t0 = time.perf_counter()
-        ray.init(address=args.ray_address, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False)
+        try:
+            ray.init(
+                address=args.ray_address, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False
+            )
+        except Exception as exc:  # ConnectionError, ValueError for a bad address: the user's input
+            raise SuiteError(f"--ray-address {args.ray_address}: cannot reach the Ray cluster: {exc}") from None
         ray_start_s = round(time.perf_counter() - t0, 2)
     try:
         results, wall = _campaign(specs, executor, jobs, args.ray_address)
