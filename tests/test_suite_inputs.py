@@ -59,6 +59,20 @@ def test_the_files_the_runs_read_and_no_others_are_gathered():
     assert len(inputs.model_sha256) == 64
 
 
+def test_a_file_first_sent_for_a_did_you_mean_is_still_followed_when_named(tmp_path):
+    from palletpilot.executor.apps.suite import RunSpec
+
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "vehicles").mkdir()
+    (tmp_path / "typo.yaml").write_text("map: maps/sit.yaml\n")  # missing: maps/*.yaml go for the did-you-mean
+    (tmp_path / "good.yaml").write_text("map: maps/site.yaml\n")
+    (tmp_path / "maps" / "site.yaml").write_text("vehicle: ../vehicles/truck.yaml\n")
+    (tmp_path / "vehicles" / "truck.yaml").write_text("name: truck\n")
+    specs = [RunSpec(name, 0, tmp_path / f"{name}.yaml", {}, "rejected") for name in ("typo", "good")]
+    names = {os.path.relpath(p, tmp_path) for p in gather_inputs(specs).files}
+    assert names == {"typo.yaml", "good.yaml", "maps/site.yaml", "vehicles/truck.yaml"}
+
+
 def test_runs_from_the_gathered_inputs_give_the_verdicts_of_runs_from_the_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the suite named relative to the working folder, as on a command line
     suite_file = make_site(tmp_path / "site").relative_to(tmp_path)

@@ -142,18 +142,21 @@ class _Gatherer:
 
     def __init__(self) -> None:
         self.files: dict[str, bytes] = {}
+        self.followed: set[str] = set()
         self.absolute_names: set[str] = set()
 
     def add(self, path: Path, follow: bool = True) -> None:
-        """Add `path` (when it is a file) and, for YAML (or JSON), the files it names."""
+        """Add `path` (when it is a file) and, for YAML (or JSON) with `follow`, the files it names."""
         key = os.path.abspath(path)
-        if key in self.files or not os.path.isfile(key):
-            return
-        try:
-            self.files[key] = Path(key).read_bytes()
-        except OSError:
-            return  # unreadable: the worker refuses it, as the head would
-        if follow and Path(key).suffix.lower() in YAML_SUFFIXES:
+        if key not in self.files:
+            if not os.path.isfile(key):
+                return
+            try:
+                self.files[key] = Path(key).read_bytes()
+            except OSError:
+                return  # unreadable: the worker refuses it, as the head would
+        if follow and key not in self.followed and Path(key).suffix.lower() in YAML_SUFFIXES:
+            self.followed.add(key)
             try:
                 doc = read_yaml(key)
             except PalletpilotError:
