@@ -22,4 +22,5 @@ BENCHMARKS: dict[str, str] = {
     "recording": "palletpilot.bench.recording",
     "fleet": "palletpilot.bench.fleet",
     "realdata": "palletpilot.bench.realdata",
+    "campaign": "palletpilot.bench.campaign",
 }

@@ -134,7 +134,10 @@ def test_an_unmet_expectation_fails_the_suite_with_the_reason_and_the_report(
     assert "expected a failure with collision, got path_blocked" in out
     assert f"report: {reports / 'blocked' / '0'}/report.json" in out
     assert "trajectory: " in out
-    assert out.splitlines()[-2:] == [f"reports: {reports}/ (suite.json, CASE/K/report.json)", f"JUnit: {junit}"]
+    assert out.splitlines()[-2:] == [
+        f"reports: {reports}/ (suite.json, campaign.json, CASE/K/report.json)",
+        f"JUnit: {junit}",
+    ]
     header = next(line for line in out.splitlines() if line.startswith("case "))
     assert header.rstrip().endswith("elapsed s")
     root = ET.parse(junit).getroot()

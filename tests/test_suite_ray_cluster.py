@@ -1,6 +1,8 @@
 """`palletpilot test --executor ray` on a real two-node Ray cluster on loopback (`ray start --head` plus a
-second node, both on 127.0.0.1, one CPU each), with the second node killed while it runs a task: the
-runs finish on the head node with the local executor's verdicts, the lost one marked `retried`.
+second node, both on 127.0.0.1, one CPU each): a suite whose folder is deleted once the head has read
+its inputs runs across both nodes from the object store with the local verdicts; then the second node
+is killed while it runs a task: the runs finish on the head node with the local executor's verdicts,
+the lost one marked `retried`. The cluster is started once for both tests (in this order).
 
 Each node is a `ray start --block` in its own process group, stopped by that group's id and the ids of
 the processes under it. Skipped where
@@ -92,7 +94,7 @@ def _alive_nodes(address: str) -> int:
     return int(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 and out.stdout.strip() else 0
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def cluster() -> Iterator[tuple[str, subprocess.Popen]]:
     temp = Path(tempfile.mkdtemp(prefix="pp-ray-", dir="/tmp"))  # short: Ray's socket paths have a length limit
     port = _free_port()
@@ -112,6 +114,34 @@ def cluster() -> Iterator[tuple[str, subprocess.Popen]]:
         for node in reversed(nodes):
             _stop(node)
         shutil.rmtree(temp, ignore_errors=True)
+
+
+def test_the_inputs_travel_with_the_tasks_to_both_nodes(cluster, tmp_path, monkeypatch):
+    from test_suite_inputs import VERDICT, make_site
+
+    from palletpilot.executor.apps.suite import load_suite
+    from palletpilot.executor.apps.suite_inputs import gather_inputs
+    from palletpilot.executor.apps.suite_ray import run_on_ray
+
+    address, _ = cluster
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    monkeypatch.chdir(tmp_path)
+    suite_file = make_site(tmp_path / "site").relative_to(tmp_path)
+    specs = load_suite(suite_file).runs()
+    local = tmp_path / "local"
+    assert (
+        subprocess.run([str(BIN / "palletpilot"), "test", str(suite_file), "--report", str(local)], env=ENV).returncode
+        == 1
+    )
+    inputs = gather_inputs(specs, suite_file)
+    shutil.rmtree(tmp_path / "site")  # no node can read the suite's folder now
+    outcome = run_on_ray(specs, tmp_path / "ray", address, None, lambda r, done: None, inputs)
+    assert outcome.jobs == 2 and not outcome.interrupted
+    on_ray = [r.to_json() for r in outcome.results]
+    want = json.loads((local / "suite.json").read_text())["results"]
+    assert [{k: r[k] for k in VERDICT} for r in on_ray] == [{k: r[k] for k in VERDICT} for r in want]
+    assert len({r["started_s"] for r in on_ray}) == len(on_ray) and not any(r["retried"] for r in on_ray)
+    assert (tmp_path / "ray" / "aisle" / "1" / "run.mcap").is_file()
 
 
 def test_a_suite_across_two_nodes_survives_losing_one(cluster, tmp_path):

@@ -5,8 +5,9 @@ Runs every case of a mission test suite (`executor.suite`) in the simulator, `--
 at a time (each run is deterministic for its seed, whatever the order), prints a line per finished run
 on stderr, then the summary table (each run that did not meet its case with its reasons and the paths
 to its report and trajectory image); `--junit FILE` writes JUnit XML, `--report DIR` (default
-`out/test/<suite file's stem>`) keeps every run's report folder (`DIR/<case>/<k>/`) and `DIR/suite.json`;
-the last lines say where both landed.
+`out/test/<suite file's stem>`) keeps every run's report folder (`DIR/<case>/<k>/`), `DIR/suite.json`
+and the campaign report (`DIR/campaign.json`, `DIR/campaign/<family>.png`: `executor.apps.suite_campaign`);
+the last lines say where they landed.
 `--executor ray` runs each run as a Ray task instead (`executor.apps.suite_ray`: a local Ray instance, or the
 cluster at `--ray-address`; `--jobs` then caps the runs at a time, default the cluster's CPUs); Ctrl-C
 there cancels the cluster's tasks, writes the summary and JUnit of the runs that finished, exit 130.
@@ -26,6 +27,8 @@ from pathlib import Path
 
 from palletpilot.executor.apps.cli_args import count, out_file, out_folder
 from palletpilot.executor.apps.suite import RunSpec, SuiteError, load_suite
+from palletpilot.executor.apps.suite_campaign import write_campaign
+from palletpilot.executor.apps.suite_inputs import gather_inputs
 from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ray
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
@@ -82,18 +85,20 @@ def cmd_test(args: argparse.Namespace) -> int:
         def progress(r: RunResult, done: int) -> None:
             print(progress_line(r, done, len(specs)), file=sys.stderr, flush=True)
 
-        outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress)
+        inputs = gather_inputs(specs, Path(args.suite))
+        outcome = run_on_ray(specs, report, args.ray_address, args.jobs, progress, inputs)
         results, interrupted, jobs = outcome.results, outcome.interrupted, outcome.jobs
     else:
         results = _run_all(specs, report, jobs)
     wall_s = time.perf_counter() - t0
     doc = suite_json(suite.name, results, wall_s, jobs)
     write_json(report / "suite.json", doc)
+    write_campaign(report, suite, results)
     if args.junit:
         write_atomic(args.junit, junit_xml(suite.name, results, wall_s))
     print(json.dumps(doc, indent=2) if args.json else summary_table(suite.name, results, wall_s))
     where = sys.stderr if args.json else sys.stdout  # --json: stdout holds the JSON alone
-    print(f"reports: {report}/ (suite.json, CASE/K/report.json)", file=where)
+    print(f"reports: {report}/ (suite.json, campaign.json, CASE/K/report.json)", file=where)
     if args.junit:
         print(f"JUnit: {Path(args.junit).resolve()}", file=where)
     if interrupted:

@@ -6,9 +6,11 @@ Ray is optional (`pip install 'palletpilot[cluster]'`); without it `--executor r
 its seed, wherever it runs), in a temporary folder on its node, and sends back its `RunResult` and its
 report folder (report.json, trajectory.csv and .png, events.jsonl, run.mcap) packed as a tar archive: the
 head writes it to `REPORT/<case>/<k>/`, as the local executor does, so the nodes need no shared folder
-for the outputs. The inputs (suite, missions, scenarios, maps, vehicle and forks files) are read by the
-task from the paths the suite names, so the nodes must see them at those paths (the same machine, or a
-shared folder); the model ships in the palletpilot wheel each node has installed.
+for the outputs. The inputs travel too (`suite_inputs`): the head reads every file the runs read (suite,
+missions, scenarios, maps, vehicle, forks and pallet type files) once, puts them in Ray's object store
+once, and each task lays them out in its temporary folder and runs from there; the paths in its verdict
+and report are written back as the head's. The segmentation model is the one each node's palletpilot
+ships: a task on a node whose model differs from the head's is an `error` that says so.
 
 Faults: a run whose worker or node dies (killed, out of memory, node lost) is submitted once more
 (Ray places it on a live worker) and marked `retried`; a second death is that run's `error`. Ctrl-C
@@ -31,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from palletpilot.executor.apps.suite import RunSpec, SuiteError
+from palletpilot.executor.apps.suite_inputs import Inputs, Placed, gather_inputs, model_sha256
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 
 INSTALL_HINT = "pip install 'palletpilot[cluster]'"
@@ -79,12 +82,42 @@ def _unpack(data: bytes, folder: Path) -> None:
         tar.extractall(folder, filter="data")
 
 
-def run_remote(spec: RunSpec) -> tuple[dict[str, Any], bytes]:
-    """One run on a Ray worker: its `RunResult` as JSON and its report folder packed (`b""` when none)."""
+RESTORED_SUFFIXES = (".json", ".jsonl")
+"""Report files whose text names input files: their worker paths are written back as the head's."""
+
+
+def run_remote(spec: RunSpec, inputs: Inputs | None = None) -> tuple[dict[str, Any], bytes]:
+    """One run on a Ray worker: its `RunResult` as JSON and its report folder packed (`b""` when none).
+
+    With `inputs`, the run reads them from a copy in its temporary folder, not from the head's paths."""
     with tempfile.TemporaryDirectory(prefix="palletpilot-run-") as tmp:
-        res = run_case(spec, Path(tmp))
-        folder = Path(tmp) / spec.case / str(spec.index)
+        out = Path(tmp) / "out"
+        if inputs is None:
+            res = run_case(spec, out)
+        elif (mine := model_sha256()) != inputs.model_sha256:
+            reason = (
+                f"internal error: this node's segmentation model (sha256 {mine[:12]}) is not the head's "
+                f"({inputs.model_sha256[:12]}): install the same palletpilot on every node"
+            )
+            res = RunResult(spec.label, spec.case, spec.index, "error", False, reason, [reason], drawn=spec.drawn)
+        else:
+            placed = inputs.materialise(Path(tmp) / "in")
+            res = _restored(run_case(placed.spec(spec), out), placed)
+        folder = out / spec.case / str(spec.index)
         return res.to_json(), _pack(folder) if folder.is_dir() else b""
+
+
+def _restored(res: RunResult, placed: Placed) -> RunResult:
+    """A run's verdict and its report's texts with the head's paths instead of the worker's copy's."""
+    res.reason = None if res.reason is None else placed.restore(res.reason)
+    res.problems = [placed.restore(p) for p in res.problems]
+    if res.report_dir is not None:
+        for path in Path(res.report_dir).rglob("*"):
+            if path.suffix in RESTORED_SUFFIXES and path.is_file():
+                text = path.read_text()
+                if (back := placed.restore(text)) != text:
+                    path.write_text(back)
+    return res
 
 
 def _received(doc: dict[str, Any], data: bytes, report: Path, retried: bool) -> RunResult:
@@ -112,16 +145,19 @@ def run_on_ray(
     address: str | None,
     jobs: int | None,
     progress: Callable[[RunResult, int], None],
+    inputs: Inputs | None = None,
 ) -> RayOutcome:
     """Run `specs` as Ray tasks, at most `jobs` at a time (None: as many as the cluster has CPUs), reports
-    under `report`; `progress(result, done)` as each finishes. Raises `SuiteError` (one line) when Ray is
-    missing or the cluster cannot be reached."""
+    under `report`; `progress(result, done)` as each finishes. The tasks read `inputs` (default: gathered
+    from `specs` now), never the head's folders. Raises `SuiteError` (one line) when Ray is missing, the
+    inputs are too large or the cluster cannot be reached."""
     missing = ray_missing()
     if missing:
         raise SuiteError(missing)
     import ray
     from ray.exceptions import RayError, RayTaskError
 
+    inputs = inputs if inputs is not None else gather_inputs(specs)
     started = not ray.is_initialized()
     if started:
         try:
@@ -129,6 +165,7 @@ def run_on_ray(
         except Exception as exc:  # ConnectionError, ValueError for a bad address: the user's input
             raise SuiteError(f"--ray-address {address}: cannot reach the Ray cluster: {exc}") from None
     task = ray.remote(num_cpus=1, max_retries=0)(run_remote)
+    shared = ray.put(inputs)  # once in the object store; each node fetches it once
     limit = jobs or max(1, int(ray.cluster_resources().get("CPU", 1)))
     waiting = list(enumerate(specs))
     running: dict[Any, tuple[int, bool]] = {}  # ref -> (index, already retried)
@@ -138,7 +175,7 @@ def run_on_ray(
         while waiting or running:
             while waiting and len(running) < limit:
                 k, spec = waiting.pop(0)
-                running[task.remote(spec)] = (k, False)
+                running[task.remote(spec, shared)] = (k, False)
             (ref,), _ = ray.wait(list(running), num_returns=1)
             k, retried = running.pop(ref)
             try:
@@ -149,7 +186,7 @@ def run_on_ray(
                 if retried:
                     results[k] = _error(specs[k], "the run's worker died twice", exc, retried)
                 else:
-                    running[task.remote(specs[k])] = (k, True)
+                    running[task.remote(specs[k], shared)] = (k, True)
                     continue
             else:
                 results[k] = _received(doc, data, report, retried)
