@@ -72,6 +72,7 @@ from palletpilot.executor.apps.vda5050.persist import Persister
 from palletpilot.executor.apps.vda5050.restart import AgvJournal
 from palletpilot.executor.apps.vda5050.routes import DEFAULT_DEVIATION_XY, pallet_name
 from palletpilot.executor.apps.vda5050.state import Messages, Snapshot, error_type, reason_level
+from palletpilot.executor.apps.vda5050.v3 import V3, MessagesV3, V3Side
 from palletpilot.executor.apps.vda5050.validation import Headers
 from palletpilot.executor.apps.vda5050.vehicle import Backend
 from palletpilot.executor.core.behaviour import Settings
@@ -132,7 +133,7 @@ class Agv(AgvInstantActions, AgvJournal):
         self.orders = OrderManager(loaded.roadmap, cfg.map_name, loaded.vehicle)
         version = hashlib.sha256(loaded.map_path.read_bytes()).hexdigest()[:12]
         headers = Headers(cfg.protocol_version, cfg.manufacturer, cfg.serial_number)
-        self.messages = Messages(
+        self.messages = (MessagesV3 if cfg.protocol_version == V3 else Messages)(
             headers,
             cfg.map_name,
             version,
@@ -142,6 +143,10 @@ class Agv(AgvInstantActions, AgvJournal):
             cfg.max_load_kg,
             fork_length=backend.forks.tip_x,
         )
+        self.v3: V3Side | None = (
+            V3Side(self.orders, self.messages, loaded, backend, log) if cfg.protocol_version == V3 else None
+        )
+        """The 3.0 version layer (`v3`): its inbound side, zones and zone guard; None on 2.x."""
         self.software_version = software_version
         self.settings = settings or Settings()
         self.controls = AgvControls()
@@ -257,12 +262,11 @@ class Agv(AgvInstantActions, AgvJournal):
             self.orders.malformed(name, why or "unreadable")
             self.log(f"agv: {name}: {why}")
             self._note("message_rejected", topic=name, why=why)
-        elif name == "order":
-            self._follow_version(doc)
-            self._order(doc)
-        elif name == "instantActions":
-            self._follow_version(doc)
-            self._instant(doc)
+        elif (routed := (name, doc) if self.v3 is None else self.v3.inbound.handle(name, doc)) is not None:
+            if self.v3 is None and routed[0] in ("order", "instantActions"):
+                self._follow_version(routed[1])
+            if routed[0] in ("order", "instantActions"):
+                (self._order if routed[0] == "order" else self._instant)(routed[1])
         self.changed()
 
     def _follow_version(self, doc: dict[str, Any]) -> None:
@@ -578,6 +582,8 @@ class Agv(AgvInstantActions, AgvJournal):
                     tol = float(pos.get("allowedDeviationXY", 0.0)) or DEFAULT_DEVIATION_XY
                     if math.hypot(n.pose.x - snap.x, n.pose.y - snap.y) <= tol:
                         o.arrive(n.id)
+        if self.v3 is not None:
+            changed = self.v3.tick(self.controls, snap) or changed
         last = (o.last_node_id, o.last_node_seq)
         if last != self._last_node:
             self._last_node, self.distance, changed = last, 0.0, True

@@ -42,10 +42,12 @@ class AgvControls(Controls):
         """A roadmap node the running leg waits to be allowed to enter."""
         self.stopping = False
         """A cancelOrder waits for the truck to stand before it cancels the leg."""
+        self.zone_hold = False
+        """A 3.0 AGV holds before a BLOCKED zone (`v3.ZoneGuard`)."""
 
     def refresh(self) -> None:
-        """Recompute `paused` from the master's pause, the gate and a cancel's stop."""
-        self.paused = self.master_pause or self.gate is not None or self.stopping
+        """Recompute `paused` from the master's pause, the gate, a cancel's stop and a zone hold."""
+        self.paused = self.master_pause or self.gate is not None or self.stopping or self.zone_hold
 
     def reset(self) -> None:
         """Clear a cancel, its stop and the gate; the master's pause stays."""
