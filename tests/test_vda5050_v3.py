@@ -238,3 +238,17 @@ def test_zone_sets_unsupported_duplicate_and_unknown_responses(tmp_path: Path) -
     assert next(a for a in s["instantActionStates"] if a["actionId"] == "e9")["actionStatus"] == "FAILED"
     assert validation.problems("state", s, V3) == []
     agv.backend.close()
+
+
+def test_standing_inside_a_blocked_zone_is_a_violation_until_the_zone_goes(tmp_path: Path) -> None:
+    fast = fast_agv_v3(tmp_path)
+    agv = fast.agv
+    kinds: list[list[str]] = []
+    fast.checks.append(lambda: kinds.append([e["errorType"] for e in agv.state_message()["errors"]]))
+    fast.at(0.2, lambda: fast.send("zoneSet", zone_set("z1", box("here", "BLOCKED", 19.0, 2.0, 21.0, 4.0))))
+    fast.at(0.3, lambda: fast.send("instantActions", {"actions": [action("enableZoneSet", "e1", zoneSetId="z1")]}))
+    fast.at(3.0, lambda: fast.send("instantActions", {"actions": [action("deleteZoneSet", "d1", zoneSetId="z1")]}))
+    fast.run_until(lambda: fast.now() > 5.0, 60)
+    during = kinds[10:55]  # 0.5 s .. 2.75 s at 20 Hz: the violation, steadily (no flapping)
+    assert during and all(k == ["BLOCKED_ZONE_VIOLATION"] for k in during), during[:5]
+    assert kinds[-1] == [] and agv.state_message()["zoneSets"] == [] and not agv.snapshot.driving

@@ -506,17 +506,17 @@ class ZoneGuard:
         """One tick: True to hold the truck, False to release a hold, None when nothing changed."""
         blocked = [z for z in self.zones.active() if z.zone_type.value == "BLOCKED"]
         now = (self.zones.generation, orders.order_id, orders.order_update_id)
+        pose = (snap.x, snap.y, snap.theta)
+        inside = next((z for z in blocked if contour_hits(self.footprint, pose, z)), None)
         if self.hold is not None:
-            if self.hold == now and orders.nodes:
+            if self.hold == now and (orders.nodes or inside is not None):
                 return None
             self._clear(orders)
             return False
         if not blocked:
             return None
-        pose = (snap.x, snap.y, snap.theta)
-        inside = next((z for z in blocked if contour_hits(self.footprint, pose, z)), None)
         zone = inside
-        if zone is None and snap.driving:
+        if zone is None and orders.nodes:  # standing too: a leg about to start must not set off into one
             reach = snap.speed**2 / (2.0 * self.decel) + HOLD_MARGIN_M + abs(snap.speed) * 0.2
             zone = self._on_path_ahead(orders, snap, reach, blocked)
         if zone is None:
