@@ -17,7 +17,8 @@ from palletpilot.executor.apps.vda5050 import validation
 from palletpilot.executor.apps.vda5050.agv import Agv
 from palletpilot.executor.apps.vda5050.config import load_config
 from palletpilot.executor.apps.vda5050.models import ConnectionState
-from palletpilot.executor.apps.vda5050.v3 import error_type_v3, order_from_v3
+from palletpilot.executor.apps.vda5050.v3 import order_from_v3
+from palletpilot.executor.apps.vda5050.v3_out import error_type_v3
 from palletpilot.executor.apps.vda5050.vehicle import TickClock, sim_backend
 from palletpilot.executor.apps.vda5050.zones import Footprint, contour_hits
 from palletpilot.executor.core.clock import SimClock

@@ -28,6 +28,10 @@ truck goes on up to the last released node.
 
 Instant actions: `instant.AgvInstantActions` (a base of `Agv`) runs them on the network thread.
 
+VDA 5050 3.0.0 (`protocol_version: 3.0.0`): the same AGV behind a version layer (`v3.V3Side`): messages in are
+checked and translated to the 2.1 form before `on_message` goes on, `v3_out.MessagesV3` builds the messages
+out, and its zone guard runs on every tick.
+
 Crash safety: `restart.AgvJournal` (a base of `Agv`) checkpoints to the journal (`persist`) on every
 `changed()` and restores the last checkpoint after a restart, with its safe rule.
 
@@ -256,7 +260,7 @@ class Agv(AgvInstantActions, AgvJournal):
 
     # -- messages in (network thread) ---------------------------------------------------------------
     def on_message(self, name: str, payload: bytes) -> None:
-        """An order or instantActions message from the broker."""
+        """An order or instantActions message from the broker (3.0: and zoneSet, responses; via `v3`)."""
         doc, why = validation.parse_message(payload)
         if doc is None:
             self.orders.malformed(name, why or "unreadable")
