@@ -253,3 +253,19 @@ def test_standing_inside_a_blocked_zone_is_a_violation_until_the_zone_goes(tmp_p
     during = kinds[10:55]  # 0.5 s .. 2.75 s at 20 Hz: the violation, steadily (no flapping)
     assert during and all(k == ["BLOCKED_ZONE_VIOLATION"] for k in during), during[:5]
     assert kinds[-1] == [] and agv.state_message()["zoneSets"] == [] and not agv.snapshot.driving
+
+
+def test_a_failed_pick_is_a_critical_error_in_3_0(tmp_path: Path) -> None:
+    fast = fast_agv_v3(tmp_path)
+    agv = fast.agv
+    pick = action("pick", "p1", "HARD", loadType="EPAL", stationType="floor")  # no pallet at floor_b1
+    fast.at(
+        1.0,
+        lambda: fast.send("order", order_v3("o1", ["b_bot", "b1", "floor_b1_pre", "floor_b1"], actions={3: [pick]})),
+    )
+    fast.run_until(lambda: agv.halted is not None and not agv.snapshot.driving, 120)
+    s = agv.state_message()
+    assert validation.problems("state", s, V3) == []
+    (error,) = s["errors"]
+    assert error["errorLevel"] == "CRITICAL" and error["errorType"] == error["errorType"].upper(), error
+    assert next(a for a in s["actionStates"] if a["actionId"] == "p1")["actionStatus"] == "FAILED"

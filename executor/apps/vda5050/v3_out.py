@@ -5,7 +5,7 @@
 `fieldViolation` only), `*Descriptor`, `actionResult`, the instant actions' states in `instantActionStates`
 (kept until `clearInstantActions`), `zoneSets`, `plannedPath` (a degree-1 NURBS from the truck through the
 rest of the base, `traversedNodes` its nodes), errors with the 3.0 error types (`ERROR_TYPES`, else camelCase
-as UPPER_SNAKE), the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's
+as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of WARNING), the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's
 names (`factsheet_v3`: `mobileRobotGeometry`, `mobileRobotActions`, `supportedZones`, ...).
 
 Public API: `V3`, `MessagesV3`, `factsheet_v3`, `ERROR_TYPES`, `error_type_v3`.
@@ -59,7 +59,13 @@ def _action_state(a: dict[str, Any]) -> dict[str, Any]:
 
 
 def _error(e: dict[str, Any]) -> dict[str, Any]:
-    return {**e, "errorType": error_type_v3(str(e["errorType"]))}
+    """An error in 3.0: its type respelled; a failed leg's WARNING (the truck halted, it takes new orders) is
+    CRITICAL, as section 6.6.5.1 defines that level."""
+    out = {**e, "errorType": error_type_v3(str(e["errorType"]))}
+    halted = any(r.get("referenceKey") == "reason" for r in e.get("errorReferences", []))
+    if halted and e["errorLevel"] == "WARNING":
+        out["errorLevel"] = "CRITICAL"
+    return out
 
 
 def _position(p: dict[str, Any]) -> dict[str, Any]:
