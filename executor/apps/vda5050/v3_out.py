@@ -5,8 +5,9 @@
 `fieldViolation` only), `*Descriptor`, `actionResult`, the instant actions' states in `instantActionStates`
 (kept until `clearInstantActions`), `zoneSets`, `plannedPath` (a degree-1 NURBS from the truck through the
 rest of the base, `traversedNodes` its nodes), errors with the 3.0 error types (`ERROR_TYPES`, else camelCase
-as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of WARNING), the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's
-names (`factsheet_v3`: `mobileRobotGeometry`, `mobileRobotActions`, `supportedZones`, ...).
+as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of WARNING),
+the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's names
+(`factsheet_v3`: `mobileRobotGeometry`, `mobileRobotActions`, `supportedZones`, ...).
 
 Public API: `V3`, `MessagesV3`, `factsheet_v3`, `ERROR_TYPES`, `error_type_v3`.
 """
