@@ -82,7 +82,7 @@ class Watch:
         agv = self.fast.agv
         s = agv.state_message()
         self.states += 1
-        self.planned += "plannedPath" in s
+        self.planned += "plannedPath" in s and len(s["intermediatePath"]["polyline"]) >= 1
         for topic, msg in (("state", s), ("visualization", agv.messages.visualization(agv.snapshot))):
             self.problems += [f"{topic}: {p}" for p in validation.problems(topic, msg, V3)]
         snap = agv.snapshot

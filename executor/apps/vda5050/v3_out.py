@@ -4,7 +4,8 @@
 `stateOfCharge`, `safetyState.activeEmergencyStop` (AUTOACK has no 3.0 value: the protective field's stop is
 `fieldViolation` only), `*Descriptor`, `actionResult`, the instant actions' states in `instantActionStates`
 (kept until `clearInstantActions`), `zoneSets`, `plannedPath` (a degree-1 NURBS from the truck through the
-rest of the base, `traversedNodes` its nodes), errors with the 3.0 error types (`ERROR_TYPES`, else camelCase
+rest of the base, `traversedNodes` its nodes) and `intermediatePath` (its points within 3 m, ETAs at the
+current speed; both repeated in the visualization), errors with the 3.0 error types (`ERROR_TYPES`, else camelCase
 as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of WARNING),
 the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's names
 (`factsheet_v3`: `mobileRobotGeometry`, `mobileRobotActions`, `supportedZones`, ...).
@@ -17,11 +18,13 @@ from __future__ import annotations
 import itertools
 import math
 import re
+import time
 from typing import Any
 
 from palletpilot.executor.apps.vda5050.models import ConnectionState
 from palletpilot.executor.apps.vda5050.orders import OrderManager
 from palletpilot.executor.apps.vda5050.state import Messages, Snapshot
+from palletpilot.executor.apps.vda5050.validation import format_timestamp
 from palletpilot.executor.apps.vda5050.zones import SUPPORTED, ZoneStore
 from palletpilot.roadmap import Roadmap
 
@@ -84,6 +87,8 @@ class MessagesV3(Messages):
     own_states: dict[str, dict[str, Any]]
     """The states of the instant actions this layer runs itself."""
     roadmap: Roadmap | None = None
+    last_planned: dict[str, Any] | None = None
+    """The last state's plannedPath (the visualization repeats it)."""
     last_state_header: int = 0
 
     def attach(self, zones: ZoneStore, roadmap: Roadmap) -> None:
@@ -111,8 +116,10 @@ class MessagesV3(Messages):
         out["nodeStates"] = _descriptors(s["nodeStates"], "nodeDescription", "nodeDescriptor")
         out["edgeStates"] = _descriptors(s["edgeStates"], "edgeDescription", "edgeDescriptor")
         planned = self.planned_path(orders, snap)
+        self.last_planned = planned
         if planned is not None:
             out["plannedPath"] = planned
+            out["intermediatePath"] = intermediate_path(planned, snap)
         out["mobileRobotPosition"] = _position(s["agvPosition"])
         for k in ("velocity", "loads", "driving", "paused", "newBaseRequest", "distanceSinceLastNode"):
             out[k] = s[k]
@@ -163,6 +170,9 @@ class MessagesV3(Messages):
         v = super().visualization(snap)
         out = {k: v[k] for k in ("headerId", "timestamp", "version", "manufacturer", "serialNumber")}
         out["referenceStateHeaderId"] = self.last_state_header
+        if self.last_planned is not None:  # the state's plannedPath, the intermediatePath from here
+            out["plannedPath"] = self.last_planned
+            out["intermediatePath"] = intermediate_path(self.last_planned, snap)
         out["mobileRobotPosition"] = _position(v["agvPosition"])
         out["velocity"] = v["velocity"]
         return out
@@ -177,6 +187,28 @@ class MessagesV3(Messages):
     def factsheet(self, software_version: str = "") -> dict[str, Any]:
         """The 3.0 factsheet: the 2.1 one with 3.0's names, `supportedZones`, the zone instant actions."""
         return factsheet_v3(super().factsheet(software_version))
+
+
+INTERMEDIATE_M = 3.0
+"""m: how far ahead the intermediatePath reaches."""
+ETA_MIN_SPEED = 0.2
+"""m/s: the intermediatePath's ETAs assume at least this speed (a standing truck about to start)."""
+
+
+def intermediate_path(planned: dict[str, Any], snap: Snapshot, now_ms: int | None = None) -> dict[str, Any]:
+    """`intermediatePath`: the plannedPath's points within `INTERMEDIATE_M` of the truck (map frame, m), the
+    first where it stands, each with an ETA at its current speed (at least `ETA_MIN_SPEED`)."""
+    ms = int(time.time() * 1000) if now_ms is None else now_ms
+    speed = max(abs(snap.speed), ETA_MIN_SPEED)
+    points = [(snap.x, snap.y)] + [(p["x"], p["y"]) for p in planned["trajectory"]["controlPoints"][1:]]
+    out, travelled = [], 0.0
+    for i, (x, y) in enumerate(points):
+        if i:
+            travelled += math.dist(points[i - 1], (x, y))
+        if travelled > INTERMEDIATE_M:
+            break
+        out.append({"x": round(x, 4), "y": round(y, 4), "eta": format_timestamp(ms + round(1000 * travelled / speed))})
+    return {"polyline": out}
 
 
 def _polyline_nurbs(points: list[tuple[float, float]], ids: list[str]) -> dict[str, Any] | None:
