@@ -269,3 +269,18 @@ def test_a_failed_pick_is_a_critical_error_in_3_0(tmp_path: Path) -> None:
     (error,) = s["errors"]
     assert error["errorLevel"] == "CRITICAL" and error["errorType"] == error["errorType"].upper(), error
     assert next(a for a in s["actionStates"] if a["actionId"] == "p1")["actionStatus"] == "FAILED"
+
+
+def test_a_3_0_agv_restored_from_a_journal_stays_3_0(tmp_path: Path) -> None:
+    fast = fast_agv_v3(tmp_path)
+    agv = fast.agv
+    agv._sample()
+    agv.heading = agv._axis_heading("b_bot")  # as `run` sets it
+    fast.send("order", order_v3("o1", ["b_bot", "b1", "b2"]))
+    assert agv.state_message()["orderId"] == "o1"
+    doc = json.loads(json.dumps(agv.checkpoint_doc()))
+    again = Agv(agv.loaded, agv.backend)
+    again.restore({**doc, "version": "2.1.0"}, source="agv.db")  # a journal a 2.1 master's messages left
+    s = again.state_message()
+    assert s["version"] == V3 and s["orderId"] == "o1" and validation.problems("state", s, V3) == []
+    agv.backend.close()
