@@ -133,6 +133,11 @@ def test_order_translation_renames_and_derives_the_edges_nodes() -> None:
     assert unsupported == [] and validation.problems("order", out) == []
     assert [(e["startNodeId"], e["endNodeId"]) for e in out["edges"]] == [("b_bot", "b1"), ("b1", "b2")]
     assert out["edges"][0]["maxSpeed"] == 0.4 and "maximumSpeed" not in out["edges"][0]
+    doc["edges"][1]["corridor"] = {"leftWidth": 0.5, "rightWidth": 0.5, "releaseRequired": True}
+    doc["edges"][1]["reachOrientationBeforeEntering"] = False
+    assert order_from_v3(doc)[1] == [] and "releaseRequired" not in order_from_v3(doc)[0]["edges"][1]["corridor"]
+    doc["edges"][0]["reachOrientationBeforeEntering"] = True
+    assert order_from_v3(doc)[1] == ["order.edges.reachOrientationBeforeEntering"]
     assert out["nodes"][1]["nodePosition"]["allowedDeviationXY"] == 0.3
     assert out["nodes"][1]["actions"][0]["blockingType"] == "HARD" and "retriable" not in out["nodes"][1]["actions"][0]
     assert (

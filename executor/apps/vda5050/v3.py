@@ -11,12 +11,14 @@ at its edges, here:
   neighbours by sequenceId; `allowedDeviationXY`, an ellipse in 3.0 (section 6.6.2.1), becomes the circle
   inside it (its smaller half axis); blockingType SINGLE (drive, but no other action) is run as HARD (no
   driving either: stricter, never looser); `retriable` is not supported (a failed action is FAILED at once, as
-  `retriable: false`); `reachOrientationBeforeEntering`, `direction`, a corridor's `releaseRequired` are
-  refused (`UNSUPPORTED_PARAMETER`). The zones (`zones.ZoneStore`) refuse an order across a BLOCKED zone and
-  put SPEED_LIMIT zones' `maximumSpeed` on the edges they touch.
+  `retriable: false`); `direction` and `reachOrientationBeforeEntering: true` (the truck cannot turn on the
+  spot) are refused (`UNSUPPORTED_PARAMETER`); a corridor's `releaseRequired` is accepted: the truck never
+  leaves the edge's curve (`routes`), so it never needs the release it would have to request (6.6.10). The
+  zones (`zones.ZoneStore`) refuse an order across a BLOCKED zone and put SPEED_LIMIT zones' `maximumSpeed`
+  on the edges they touch.
 - `zoneSet` (a new set, DISABLED) and the instant actions `enableZoneSet`, `deleteZoneSet` and
   `clearInstantActions` are handled here; `responses` are schema-checked and logged: this AGV makes no
-  requests (no RELEASE or COORDINATED_REPLANNING zones, no corridors with releaseRequired), so no response
+  requests (no RELEASE or COORDINATED_REPLANNING zones, never a corridor's deviation), so no response
   can answer one; a response to an unknown requestId is a WARNING `UNKNOWN_REQUEST`.
 - out: `v3_out.MessagesV3`, the 2.1 messages renamed for 3.0 (see there). The topic prefix
   `vda5050/v3/...` comes from `config`.
@@ -54,6 +56,7 @@ _EDGE_RENAMES = {
     "edgeDescriptor": "edgeDescription",
 }
 _REFUSED_EDGE_FIELDS = ("reachOrientationBeforeEntering", "direction")
+"""Refused when given (reachOrientationBeforeEntering: when true)."""
 OWN_INSTANT = ("enableZoneSet", "deleteZoneSet", "clearInstantActions")
 """Instant actions this layer runs itself (the rest go to the order manager)."""
 
@@ -89,15 +92,13 @@ def order_from_v3(doc: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
         edge["startNodeId"] = by_seq.get(seq - 1, "")
         edge["endNodeId"] = by_seq.get(seq + 1, "")
         for key in _REFUSED_EDGE_FIELDS:
-            if key in e:
+            if key in e and (key != "reachOrientationBeforeEntering" or e[key] is True):
                 unsupported.append(f"order.edges.{key}")
-                edge.pop(key)
+            edge.pop(key, None)
         corridor = e.get("corridor")
-        if isinstance(corridor, dict):
-            c = {k: v for k, v in corridor.items() if k not in ("corridorReferencePoint", "releaseLossBehavior")}
-            c.pop("releaseRequired", None)
-            if corridor.get("releaseRequired"):
-                unsupported.append("order.edges.corridor.releaseRequired")
+        if isinstance(corridor, dict):  # never used for a deviation: no release to request, none to lose
+            dropped = ("corridorReferencePoint", "releaseLossBehavior", "releaseRequired")
+            c = {k: v for k, v in corridor.items() if k not in dropped}
             if "corridorReferencePoint" in corridor:
                 c["corridorRefPoint"] = str(corridor["corridorReferencePoint"]).replace("_", "")
             edge["corridor"] = c
