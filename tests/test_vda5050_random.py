@@ -1,11 +1,12 @@
 """A seeded, bounded random sequence of schema-valid messages at the in-process AGV in simulated time
 (`test_vda5050_fastsim.FastAgv`): orders along roadmap walks with picks and drops, updates at the decision
-point, stitches, stale resends, orders starting elsewhere, cancels, pauses and other instant actions. It
-asserts no exit of the executor thread, no internalError, every state schema-valid, and a standing truck
-after every failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPILOT_VDA_RANDOM_MESSAGES`
-(default 30) size it; the figures are printed (`pytest -s`). The same on a 3.0.0 AGV: the messages go
-through the test bridge's 2.x -> 3.0 translation (`vda_master/bridge_v3`), zone sets (BLOCKED and SPEED_LIMIT
-boxes, enabled at once) come in among them, and every state is checked against the 3.0.0 schema."""
+point, stitches, stale resends, orders starting elsewhere, cancels, pauses and other instant actions. It asserts
+no exit of the executor thread, no internalError, every state schema-valid, and a standing truck after every
+failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPILOT_VDA_RANDOM_MESSAGES` (default 30) size
+it; the figures are printed (`pytest -s`). The same on a 3.0.0 AGV: the messages go through the test bridge's
+2.x -> 3.0 translation (`vda_master/bridge_v3`), zone sets (BLOCKED, SPEED_LIMIT and RELEASE boxes, enabled at
+once) and responses to the truck's zone requests come in among them, and every state is checked against the
+3.0.0 schema."""
 
 from __future__ import annotations
 
@@ -175,11 +176,21 @@ class RandomMaster:
         return kind
 
     def zone_set(self) -> None:
-        """A 3.0 zone set: a BLOCKED or SPEED_LIMIT box around a random roadmap node, enabled at once."""
+        """A 3.0 zone set: a BLOCKED, SPEED_LIMIT or RELEASE box around a random roadmap node, enabled at once;
+        or, half the time while the truck has zone requests, a response to one (any grant type)."""
+        requests = self.fast.agv.state_message().get("zoneRequests", [])
+        if requests and self.rng.random() < 0.5:
+            grant = self.rng.choice(["GRANTED", "GRANTED", "QUEUED", "REJECTED", "REVOKED"])
+            response = {"requestId": self.rng.choice(requests)["requestId"], "grantType": grant}
+            self.fast.send("responses", {"responses": [response]})
+            return
         node = self.rng.choice([n for n in self.roadmap.nodes() if not n.temporary]).pose
         half = self.rng.uniform(0.3, 1.5)
         x0, y0, x1, y1 = node.x - half, node.y - half, node.x + half, node.y + half
-        zone: dict[str, Any] = {"zoneId": f"z{self.count}", "zoneType": self.rng.choice(["BLOCKED", "SPEED_LIMIT"])}
+        zone: dict[str, Any] = {
+            "zoneId": f"z{self.count}",
+            "zoneType": self.rng.choice(["BLOCKED", "SPEED_LIMIT", "RELEASE"]),
+        }
         zone["vertices"] = [{"x": x0, "y": y0}, {"x": x1, "y": y0}, {"x": x1, "y": y1}, {"x": x0, "y": y1}]
         if zone["zoneType"] == "SPEED_LIMIT":
             zone["maximumSpeed"] = self.rng.uniform(0.1, 0.5)
@@ -197,7 +208,7 @@ def random_run(tmp_path: Path, seed: int, messages: int, version: str = "2.1.0")
     v3 = version.startswith("3.")
     fast: FastAgv = fast_agv(tmp_path, seed=seed, start=start) if not v3 else _translated(tmp_path, start)
     agv = fast.agv
-    master = RandomMaster(fast, rng, zones=1 if v3 else 0)
+    master = RandomMaster(fast, rng, zones=3 if v3 else 0)
 
     def state_problems(fast: FastAgv) -> list[str]:
         return validation.problems("state", fast.agv.state_message(), version)

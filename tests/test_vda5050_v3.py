@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,7 @@ def test_config_3_0_topics_and_connection_broken(tmp_path: Path) -> None:
     assert factsheet["typeSpecification"]["supportedZones"] == [
         "BLOCKED",
         "LINE_GUIDED",
+        "RELEASE",
         "SPEED_LIMIT",
         "PRIORITY",
         "PENALTY",
@@ -229,9 +231,10 @@ def test_speed_limit_zones_slow_the_truck_before_and_inside(tmp_path: Path) -> N
 def test_zone_sets_unsupported_duplicate_and_unknown_responses(tmp_path: Path) -> None:
     fast = fast_agv_v3(tmp_path)
     agv = fast.agv
-    fast.send("zoneSet", zone_set("z1", box("r", "RELEASE", 0, 0, 1, 1, releaseLossBehavior="STOP")))
+    fast.send("zoneSet", zone_set("z1", box("r", "COORDINATED_REPLANNING", 0, 0, 1, 1)))
     errors = agv.state_message()["errors"]
-    assert [e["errorType"] for e in errors] == ["UNSUPPORTED_ZONE_TYPE"] and "RELEASE" in errors[0]["errorDescription"]
+    assert [e["errorType"] for e in errors] == ["UNSUPPORTED_ZONE_TYPE"]
+    assert "COORDINATED_REPLANNING" in errors[0]["errorDescription"]
     assert agv.state_message()["zoneSets"] == []
     fast.send("zoneSet", zone_set("z2", box("ok", "LINE_GUIDED", 0, 0, 1, 1)))
     fast.send("zoneSet", zone_set("z2", box("ok", "LINE_GUIDED", 0, 0, 1, 1)))
@@ -289,3 +292,78 @@ def test_a_3_0_agv_restored_from_a_journal_stays_3_0(tmp_path: Path) -> None:
     s = again.state_message()
     assert s["version"] == V3 and s["orderId"] == "o1" and validation.problems("state", s, V3) == []
     agv.backend.close()
+
+
+def release_run(tmp_path: Path, answer: Callable[[FastAgvV3, dict[str, Any]], None], until_s: float = 60.0) -> Watch:
+    """The truck from b_bot to b3 across RELEASE zone 'gate' (y 10..11 in aisle B); `answer(fast, state)` runs
+    every tick (the master's side)."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    fast = fast_agv_v3(tmp_path)
+    watch = Watch(fast)
+    fast.checks.append(watch)
+    fast.checks.append(lambda: answer(fast, fast.agv.state_message()))
+    gate = box("gate", "RELEASE", 18.5, 10.0, 21.5, 11.0, releaseLossBehavior="STOP")
+    fast.at(0.2, lambda: fast.send("zoneSet", zone_set("z1", gate)))
+    fast.at(0.3, lambda: fast.send("instantActions", {"actions": [action("enableZoneSet", "e1", zoneSetId="z1")]}))
+    fast.at(1.0, lambda: fast.send("order", order_v3("o1", ["b_bot", "b1", "b2", "b3"])))
+    fast.run_until(lambda: fast.now() > until_s, 120)
+    return watch
+
+
+def in_gate(fast: FastAgvV3, pose: tuple[float, float, float, float, float]) -> bool:
+    assert fast.agv.v3 is not None
+    zone = next(z for z in fast.agv.v3.zones.active() if z.zone_id == "gate")
+    return contour_hits(fast.agv.v3.inbound.footprint, pose[1:4], zone)
+
+
+def respond(fast: FastAgvV3, request_id: str, grant: str) -> None:
+    fast.send("responses", {"responses": [{"requestId": request_id, "grantType": grant}]})
+
+
+def test_a_release_zone_is_entered_only_once_granted(tmp_path: Path) -> None:
+    granted: list[float] = []
+    requests: list[list[dict[str, Any]]] = []
+
+    def master(fast: FastAgvV3, s: dict[str, Any]) -> None:
+        requests.append(s["zoneRequests"])
+        if not granted and s["zoneRequests"] and fast.now() > 15.0:  # answered late: the truck waits
+            assert not s["driving"] and s["zoneRequests"][0]["requestStatus"] == "REQUESTED"
+            granted.append(fast.now())
+            respond(fast, s["zoneRequests"][0]["requestId"], "GRANTED")
+
+    watch = release_run(tmp_path, master)
+    fast = watch.fast
+    s = fast.agv.state_message()
+    assert watch.problems == [] and granted and s["lastNodeId"] == "b3" and s["errors"] == [], s
+    first = next(r for r in requests if r)[0]
+    assert first["requestType"] == "ACCESS" and first["zoneId"] == "gate" and first["zoneSetId"] == "z1"
+    assert not any(in_gate(fast, p) for p in watch.poses if p[0] < granted[0])
+    assert any(in_gate(fast, p) for p in watch.poses)
+    assert s["zoneRequests"] == []  # left the zone: the request is gone
+
+
+def test_a_rejected_release_holds_the_truck_and_a_revoked_one_stops_it_inside(tmp_path: Path) -> None:
+    def reject(fast: FastAgvV3, s: dict[str, Any]) -> None:
+        if s["zoneRequests"]:
+            respond(fast, s["zoneRequests"][0]["requestId"], "REJECTED")
+
+    watch = release_run(tmp_path / "rejected", reject, until_s=30.0)
+    fast = watch.fast
+    s = fast.agv.state_message()
+    assert watch.problems == [] and not any(in_gate(fast, p) for p in watch.poses) and not s["driving"]
+    assert s["zoneRequests"] == [] and [e["errorType"] for e in s["errors"]] == ["NODE_UNREACHABLE"]
+    assert s["errors"][0]["errorLevel"] == "CRITICAL" and s["lastNodeId"] in ("b1", "b2")
+
+    def grant_then_revoke(fast: FastAgvV3, s: dict[str, Any]) -> None:
+        for r in s["zoneRequests"]:
+            if r["requestStatus"] == "REQUESTED":
+                respond(fast, r["requestId"], "GRANTED")
+            elif r["requestStatus"] == "GRANTED" and fast.agv.snapshot.y > 9.0:  # in the zone (forks first)
+                respond(fast, r["requestId"], "REVOKED")
+
+    watch = release_run(tmp_path / "revoked", grant_then_revoke, until_s=40.0)
+    fast = watch.fast
+    s = fast.agv.state_message()
+    assert watch.problems == [] and not s["driving"] and s["lastNodeId"] != "b3", s
+    assert [r["requestStatus"] for r in s["zoneRequests"]] == ["REVOKED"]
+    assert [e["errorType"] for e in s["errors"]] == ["RELEASE_LOST"] and in_gate(fast, watch.poses[-1])

@@ -17,9 +17,9 @@ at its edges, here:
   zones (`zones.ZoneStore`) refuse an order across a BLOCKED zone and put SPEED_LIMIT zones' `maximumSpeed`
   on the edges they touch.
 - `zoneSet` (a new set, DISABLED) and the instant actions `enableZoneSet`, `deleteZoneSet` and
-  `clearInstantActions` are handled here; `responses` are schema-checked and logged: this AGV makes no
-  requests (no RELEASE or COORDINATED_REPLANNING zones, never a corridor's deviation), so no response
-  can answer one; a response to an unknown requestId is a WARNING `UNKNOWN_REQUEST`.
+  `clearInstantActions` are handled here; `responses` answer the RELEASE zones' access requests
+  (`release.ReleaseGate`, the only requests this AGV makes: it never deviates into a corridor, has no
+  COORDINATED_REPLANNING zones); a response to a requestId it has not made is a WARNING `UNKNOWN_REQUEST`.
 - out: `v3_out.MessagesV3`, the 2.1 messages renamed for 3.0 (see there). The topic prefix
   `vda5050/v3/...` comes from `config`.
 
@@ -34,7 +34,9 @@ Public API: `V3`, `MessagesV3` (from `v3_out`), `order_from_v3`, `instant_from_v
 
 from __future__ import annotations
 
+import itertools
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -43,10 +45,11 @@ from palletpilot.executor.apps.vda5050.config import Loaded
 from palletpilot.executor.apps.vda5050.legs import AgvControls
 from palletpilot.executor.apps.vda5050.models import AgvError, ErrorLevel
 from palletpilot.executor.apps.vda5050.orders import OrderManager
+from palletpilot.executor.apps.vda5050.release import ReleaseGate
 from palletpilot.executor.apps.vda5050.state import Messages, Snapshot
 from palletpilot.executor.apps.vda5050.v3_out import V3, MessagesV3
 from palletpilot.executor.apps.vda5050.vehicle import Backend
-from palletpilot.executor.apps.vda5050.zones import Footprint, ZoneStore, contour_hits, order_path
+from palletpilot.executor.apps.vda5050.zones import Footprint, Zone, ZoneStore, ZoneType, contour_hits, order_path
 from palletpilot.roadmap import Roadmap
 
 _EDGE_RENAMES = {
@@ -126,8 +129,9 @@ class V3Inbound:
         roadmap: Roadmap,
         footprint: Footprint,
         log: Callable[[str], None],
+        gate: ReleaseGate,
     ) -> None:
-        self.orders, self.messages, self.zones = orders, messages, zones
+        self.orders, self.messages, self.zones, self.gate = orders, messages, zones, gate
         self.roadmap, self.footprint, self.log = roadmap, footprint, log
 
     def _warn(self, error: AgvError) -> None:
@@ -157,8 +161,11 @@ class V3Inbound:
             else:
                 self.log(f"agv: zone set '{doc['zoneSet']['zoneSetId']}' received (DISABLED until enableZoneSet)")
         elif name == "responses":
-            for r in doc["responses"]:  # this AGV makes no requests: nothing a response can answer
-                why = f"a response ({r['grantType']}) to request '{r['requestId']}', which this truck never made"
+            for r in doc["responses"]:  # the RELEASE zones' access requests (`release`)
+                if self.gate.respond(r):
+                    self.log(f"agv: zone request '{r['requestId']}': {r['grantType']}")
+                    continue
+                why = f"a response ({r['grantType']}) to request '{r['requestId']}', which this truck has not made"
                 self._warn(AgvError("UNKNOWN_REQUEST", ErrorLevel.WARNING, why, (*refs, ("requestId", r["requestId"]))))
         return None
 
@@ -237,46 +244,81 @@ HOLD_MARGIN_M = 0.5
 
 
 class ZoneGuard:
-    """Holds the truck before a BLOCKED zone of the enabled zone set (module docstring); executor thread."""
+    """Holds the truck before a BLOCKED zone, and before a RELEASE zone until it is granted (module docstring,
+    `release`); executor thread. The zones met along the order's path are worked out once per path and zone
+    set (`_hits`); each tick only finds the truck on that path."""
 
-    def __init__(self, zones: ZoneStore, roadmap: Roadmap, footprint: Footprint, decel: float) -> None:
-        self.zones, self.roadmap, self.footprint, self.decel = zones, roadmap, footprint, decel
+    def __init__(
+        self, zones: ZoneStore, roadmap: Roadmap, footprint: Footprint, decel: float, gate: ReleaseGate
+    ) -> None:
+        self.zones, self.roadmap, self.footprint, self.decel, self.gate = zones, roadmap, footprint, decel, gate
         self.hold: tuple[int, str, int] | None = None
-        """(zone generation, orderId, orderUpdateId) of the hold in force."""
+        """(zone generation, orderId, orderUpdateId) of the BLOCKED hold in force."""
         self.error: AgvError | None = None
-        self._path_key: tuple[str, int, int] | None = None
+        self._key: tuple[str, int, int, int] | None = None
         self._path: list[Any] = []
+        self._cum: list[float] = []
+        self._hits: list[tuple[int, Zone]] = []
 
-    def _ahead(self, orders: OrderManager) -> list[Any]:
-        """The order's path from the last node passed to the end of the base (cached per progress)."""
+    def _ahead(self, orders: OrderManager) -> None:
+        """The order's path from the last node passed to the end of the base, its length along the way and
+        the zones its contour meets (pose index, zone), worked out again when the progress or zones change."""
         with orders.lock:
-            key = (orders.order_id, orders.order_update_id, orders.cursor)
-            if key != self._path_key:
-                end = orders.base_end()
-                ids = orders.rm[max(orders.cursor - 1, 0) : end + 1]
-                self._path = order_path(self.roadmap, [{"nodeId": n, "released": True} for n in ids])
-                self._path_key = key
-        return self._path
+            key = (orders.order_id, orders.order_update_id, orders.cursor, self.zones.generation)
+            if key == self._key:
+                return
+            end = orders.base_end()
+            ids = orders.rm[max(orders.cursor - 1, 0) : end + 1]
+        self._key = key
+        self._path = order_path(self.roadmap, [{"nodeId": n, "released": True} for n in ids])
+        self._cum = [0.0]
+        for a, b in itertools.pairwise(self._path):
+            self._cum.append(self._cum[-1] + math.hypot(b.x - a.x, b.y - a.y))
+        zones = [z for z in self.zones.active() if z.zone_type in (ZoneType.BLOCKED, ZoneType.RELEASE)]
+        self._hits = [
+            (i, z) for i, pose in enumerate(self._path) for z in zones if contour_hits(self.footprint, pose, z)
+        ]
 
-    def check(self, orders: OrderManager, snap: Snapshot) -> bool | None:
-        """One tick: True to hold the truck, False to release a hold, None when nothing changed."""
-        blocked = [z for z in self.zones.active() if z.zone_type.value == "BLOCKED"]
-        now = (self.zones.generation, orders.order_id, orders.order_update_id)
+    def _met_ahead(self, orders: OrderManager, snap: Snapshot) -> dict[str, tuple[Zone, float]]:
+        """The BLOCKED and RELEASE zones on the path ahead of the truck: by zoneId, the zone and how far (m)."""
+        self._ahead(orders)
+        path = self._path
+        if not path or not self._hits:
+            return {}
+        near = min(range(len(path)), key=lambda i: (path[i].x - snap.x) ** 2 + (path[i].y - snap.y) ** 2)
+        out: dict[str, tuple[Zone, float]] = {}
+        for i, zone in self._hits:
+            if i >= near and zone.zone_id not in out:
+                out[zone.zone_id] = (zone, self._cum[i] - self._cum[near])
+        return out
+
+    def check(self, orders: OrderManager, snap: Snapshot) -> bool:
+        """One tick: True while the truck must hold (before a BLOCKED zone, or a RELEASE zone not granted)."""
+        active = self.zones.active()
         pose = (snap.x, snap.y, snap.theta)
-        inside = next((z for z in blocked if contour_hits(self.footprint, pose, z)), None)
+        inside = [z for z in active if z.zone_type in (ZoneType.BLOCKED, ZoneType.RELEASE)]
+        inside = [z for z in inside if contour_hits(self.footprint, pose, z)]
+        ahead = self._met_ahead(orders, snap) if orders.nodes else {}
+        reach = snap.speed**2 / (2.0 * self.decel) + HOLD_MARGIN_M + abs(snap.speed) * 0.2
+        release_ahead = {k: v for k, v in ahead.items() if v[0].zone_type is ZoneType.RELEASE}
+        release_inside = [z for z in inside if z.zone_type is ZoneType.RELEASE]
+        order_key = (orders.order_id, orders.order_update_id)
+        wait = self.gate.tick(order_key, release_ahead, release_inside, reach, self.zones.active_set_id(), time.time())
+        blocked_inside = next((z for z in inside if z.zone_type is ZoneType.BLOCKED), None)
+        near = [z for z, d in ahead.values() if z.zone_type is ZoneType.BLOCKED and d <= reach]
+        return self._blocked(orders, blocked_inside, near[0] if near else None) or wait
+
+    def _blocked(self, orders: OrderManager, inside: Zone | None, ahead: Zone | None) -> bool:
+        """The BLOCKED hold: set with its error when the truck is in a BLOCKED zone or would reach one; kept
+        until the zone set or the order changes."""
+        now = (self.zones.generation, orders.order_id, orders.order_update_id)
         if self.hold is not None:
             if self.hold == now and (orders.nodes or inside is not None):
-                return None
+                return True
             self._clear(orders)
-            return False
-        if not blocked:
-            return None
-        zone = inside
-        if zone is None and orders.nodes:  # standing too: a leg about to start must not set off into one
-            reach = snap.speed**2 / (2.0 * self.decel) + HOLD_MARGIN_M + abs(snap.speed) * 0.2
-            zone = self._on_path_ahead(orders, snap, reach, blocked)
+        zone = inside or ahead
         if zone is None:
-            return None
+            return False
         kind = "BLOCKED_ZONE_VIOLATION" if inside is not None else "BLOCKED_ZONE_AHEAD"
         what = (
             f"the truck is inside BLOCKED zone '{zone.zone_id}': it stopped"
@@ -290,22 +332,6 @@ class ZoneGuard:
             orders.errors.append(self.error)
         self.hold = now
         return True
-
-    def _on_path_ahead(self, orders: OrderManager, snap: Snapshot, reach: float, blocked: list[Any]) -> Any:
-        path = self._ahead(orders)
-        if not path:
-            return None
-        near = min(range(len(path)), key=lambda i: (path[i].x - snap.x) ** 2 + (path[i].y - snap.y) ** 2)
-        travelled, prev = 0.0, path[near]
-        for pose in path[near:]:
-            travelled += math.hypot(pose.x - prev.x, pose.y - prev.y)
-            prev = pose
-            if travelled > reach:
-                return None
-            for zone in blocked:
-                if contour_hits(self.footprint, pose, zone):
-                    return zone
-        return None
 
     def _clear(self, orders: OrderManager) -> None:
         if self.error is not None:
@@ -325,16 +351,21 @@ class V3Side:
         params = loaded.vehicle
         footprint = Footprint(params.body.rear_x, backend.forks.tip_x, params.body.width)
         self.zones = ZoneStore(loaded.config.map_name)
-        messages.attach(self.zones, loaded.roadmap)
-        self.inbound = V3Inbound(orders, messages, self.zones, loaded.roadmap, footprint, log)
-        self.guard = ZoneGuard(self.zones, loaded.roadmap, footprint, params.max_decel)
+        self.gate = ReleaseGate()
+        messages.attach(self.zones, loaded.roadmap, self.gate)
+        self.inbound = V3Inbound(orders, messages, self.zones, loaded.roadmap, footprint, log, self.gate)
+        self.guard = ZoneGuard(self.zones, loaded.roadmap, footprint, params.max_decel, self.gate)
         self.orders = orders
+        self._requests: list[dict[str, Any]] = []
 
     def tick(self, controls: AgvControls, snap: Snapshot) -> bool:
-        """The zone guard on one control tick (executor thread); True when the hold changed."""
+        """The zone guard on one control tick (executor thread); True when the hold or the zone requests
+        changed (a state is due)."""
         hold = self.guard.check(self.orders, snap)
-        if hold is None:
-            return False
-        controls.zone_hold = hold
-        controls.refresh()
-        return True
+        requests = self.gate.to_json()
+        changed = hold != controls.zone_hold or requests != self._requests
+        self._requests = requests
+        if hold != controls.zone_hold:
+            controls.zone_hold = hold
+            controls.refresh()
+        return changed

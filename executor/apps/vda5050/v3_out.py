@@ -1,13 +1,13 @@
 """VDA 5050 3.0.0 outgoing messages: the 2.1 builders' messages renamed for 3.0 (the `v3` version layer).
 
-`MessagesV3` (a `state.Messages`): `mobileRobotPosition` with `localized`, `powerSupply` with
-`stateOfCharge`, `safetyState.activeEmergencyStop` (AUTOACK has no 3.0 value: the protective field's stop is
-`fieldViolation` only), `*Descriptor`, `actionResult`, the instant actions' states in `instantActionStates`
-(kept until `clearInstantActions`), `zoneSets`, `plannedPath` (a degree-1 NURBS from the truck through the
-rest of the base, `traversedNodes` its nodes) and `intermediatePath` (its points within 3 m, ETAs at the
-current speed; both repeated in the visualization), errors with the 3.0 error types (`ERROR_TYPES`, else camelCase
-as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of WARNING),
-the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's names
+`MessagesV3` (a `state.Messages`): `mobileRobotPosition` with `localized`, `powerSupply` with `stateOfCharge`,
+`safetyState.activeEmergencyStop` (AUTOACK has no 3.0 value: the protective field's stop is `fieldViolation`
+only), `*Descriptor`, `actionResult`, the instant actions' states in `instantActionStates` (kept until
+`clearInstantActions`), `zoneSets`, `zoneRequests` (`release`), `plannedPath` (a degree-1 NURBS from the truck
+through the rest of the base, `traversedNodes` its nodes) and `intermediatePath` (its points within 3 m, ETAs at
+the current speed; both repeated in the visualization), errors with the 3.0 error types (`ERROR_TYPES`, else
+camelCase as UPPER_SNAKE; a failed leg, after which the truck stands until a new order, CRITICAL instead of
+WARNING), the visualization's `referenceStateHeaderId`, CONNECTION_BROKEN, and the factsheet in 3.0's names
 (`factsheet_v3`: `mobileRobotGeometry`, `mobileRobotActions`, `supportedZones`, ...).
 
 Public API: `V3`, `MessagesV3`, `factsheet_v3`, `ERROR_TYPES`, `error_type_v3`.
@@ -23,6 +23,7 @@ from typing import Any
 
 from palletpilot.executor.apps.vda5050.models import ConnectionState
 from palletpilot.executor.apps.vda5050.orders import OrderManager
+from palletpilot.executor.apps.vda5050.release import ReleaseGate
 from palletpilot.executor.apps.vda5050.state import Messages, Snapshot
 from palletpilot.executor.apps.vda5050.validation import format_timestamp
 from palletpilot.executor.apps.vda5050.zones import SUPPORTED, ZoneStore
@@ -87,13 +88,14 @@ class MessagesV3(Messages):
     own_states: dict[str, dict[str, Any]]
     """The states of the instant actions this layer runs itself."""
     roadmap: Roadmap | None = None
+    gate: ReleaseGate
     last_planned: dict[str, Any] | None = None
     """The last state's plannedPath (the visualization repeats it)."""
     last_state_header: int = 0
 
-    def attach(self, zones: ZoneStore, roadmap: Roadmap) -> None:
-        """Give the builder the zone store and the roadmap (plannedPath)."""
-        self.zones, self.roadmap = zones, roadmap
+    def attach(self, zones: ZoneStore, roadmap: Roadmap, gate: ReleaseGate) -> None:
+        """Give the builder the zone store, the roadmap (plannedPath) and the RELEASE zones' requests."""
+        self.zones, self.roadmap, self.gate = zones, roadmap, gate
         self.instant_ids, self.own_states = {}, {}
 
     def state(self, orders: OrderManager, snap: Snapshot, **kw: Any) -> dict[str, Any]:
@@ -121,13 +123,15 @@ class MessagesV3(Messages):
             out["plannedPath"] = planned
             out["intermediatePath"] = intermediate_path(planned, snap)
         out["mobileRobotPosition"] = _position(s["agvPosition"])
-        for k in ("velocity", "loads", "driving", "paused", "newBaseRequest", "distanceSinceLastNode"):
+        for k in ("velocity", "loads", "driving", "paused", "newBaseRequest"):
             out[k] = s[k]
+        out["zoneRequests"] = self.gate.to_json()
+        out["distanceSinceLastNode"] = s["distanceSinceLastNode"]
         out["actionStates"] = order_states
         out["instantActionStates"] = instant_states
         out["powerSupply"] = {"stateOfCharge": battery["batteryCharge"], "charging": battery["charging"]}
         out["operatingMode"] = s["operatingMode"]
-        out["errors"] = [_error(e) for e in s["errors"]]
+        out["errors"] = [_error(e) for e in s["errors"]] + [e.to_json() for e in self.gate.errors()]
         out["information"] = _descriptors(s["information"], "infoDescription", "infoDescriptor")
         safety = s["safetyState"]
         out["safetyState"] = {

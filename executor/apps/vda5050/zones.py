@@ -16,8 +16,10 @@ drives there (an edge driven in reverse turns the forks behind):
   Orders received after the set was enabled.
 - LINE_GUIDED: honoured as it is: the truck only ever drives the roadmap's edges.
 - PRIORITY, PENALTY: honoured as they are: the truck plans no route of its own (the order's edges).
-- RELEASE, COORDINATED_REPLANNING, ACTION, DIRECTED, BIDIRECTED: not supported; a zone set with one is
-  refused whole (`UNSUPPORTED_ZONE_TYPE`, WARNING, naming the zone and its type), never half honoured.
+- RELEASE: entered only with the master's grant (`release.ReleaseGate`: zone requests, responses); a
+  `releaseLossBehavior` EVACUATE is refused (the truck has no evacuation behaviour).
+- COORDINATED_REPLANNING, ACTION, DIRECTED, BIDIRECTED: not supported; a zone set with one is refused whole
+  (`UNSUPPORTED_ZONE_TYPE`, WARNING, naming the zone and its type), never half honoured.
 
 Public API: `ZoneType`, `SUPPORTED`, `Zone`, `ZoneSet`, `ZoneStore`, `Footprint`, `PathPose`,
 `polygon_hits`, `order_path`.
@@ -56,18 +58,27 @@ class ZoneType(str, Enum):
     BIDIRECTED = "BIDIRECTED"
 
 
-SUPPORTED = (ZoneType.BLOCKED, ZoneType.LINE_GUIDED, ZoneType.SPEED_LIMIT, ZoneType.PRIORITY, ZoneType.PENALTY)
+SUPPORTED = (
+    ZoneType.BLOCKED,
+    ZoneType.LINE_GUIDED,
+    ZoneType.RELEASE,
+    ZoneType.SPEED_LIMIT,
+    ZoneType.PRIORITY,
+    ZoneType.PENALTY,
+)
 """The zone types this AGV honours (the factsheet's `supportedZones`)."""
 
 
 @dataclass(frozen=True)
 class Zone:
-    """One zone: its polygon (map frame, m; at least three vertices) and, for SPEED_LIMIT, m/s."""
+    """One zone: its polygon (map frame, m; at least three vertices), for SPEED_LIMIT its speed (m/s), for
+    RELEASE its `releaseLossBehavior` (STOP or CONTINUE; None: STOP)."""
 
     zone_id: str
     zone_type: ZoneType
     vertices: np.ndarray
     maximum_speed: float | None = None
+    release_loss: str | None = None
 
 
 @dataclass
@@ -238,7 +249,12 @@ class ZoneStore:
             if speed is not None and float(speed) <= 0.0:
                 why = f"zone '{z['zoneId']}': maximumSpeed {speed} m/s must be above 0"
                 return _error("VALIDATION_FAILURE", ErrorLevel.WARNING, why, [*refs, ("zoneId", str(z["zoneId"]))])
-            zones.append(Zone(str(z["zoneId"]), kind, vertices, None if speed is None else float(speed)))
+            loss = z.get("releaseLossBehavior") if kind is ZoneType.RELEASE else None
+            if loss not in (None, "STOP", "CONTINUE"):
+                why = f"zone '{z['zoneId']}': releaseLossBehavior {loss} is not supported (STOP or CONTINUE)"
+                refs += [("zoneId", str(z["zoneId"]))]
+                return _error("UNSUPPORTED_ZONE_TYPE", ErrorLevel.WARNING, why, refs)
+            zones.append(Zone(str(z["zoneId"]), kind, vertices, None if speed is None else float(speed), loss))
         with self.lock:
             self.sets[set_id] = ZoneSet(set_id, map_id, tuple(zones))
         return None
