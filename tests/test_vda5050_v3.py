@@ -4,6 +4,7 @@ Every message the AGV builds here is validated against the 3.0.0 schemas."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Callable
@@ -367,3 +368,22 @@ def test_a_rejected_release_holds_the_truck_and_a_revoked_one_stops_it_inside(tm
     assert watch.problems == [] and not s["driving"] and s["lastNodeId"] != "b3", s
     assert [r["requestStatus"] for r in s["zoneRequests"]] == ["REVOKED"]
     assert [e["errorType"] for e in s["errors"]] == ["RELEASE_LOST"] and in_gate(fast, watch.poses[-1])
+
+
+def test_speed_limit_zones_apply_to_a_leg_as_it_starts(tmp_path: Path) -> None:
+    """A zone set enabled after the order was taken still slows the legs that start afterwards."""
+    from palletpilot.executor.apps.vda5050.legs import speed_limits
+    from palletpilot.executor.apps.vda5050.orders import Leg
+
+    fast = fast_agv_v3(tmp_path)
+    agv = fast.agv
+    assert agv.v3 is not None
+    fast.send("zoneSet", zone_set("z1", box("slow", "SPEED_LIMIT", 18.0, 9.5, 22.0, 10.5, maximumSpeed=0.25)))
+    fast.send("instantActions", {"actions": [action("enableZoneSet", "e1", zoneSetId="z1")]})
+    route = ("b1", "b2", "b3", "b_top")
+    assert agv.v3.leg_speed_limits(route) == {0: 0.25, 1: 0.25}  # the contour touches it from both edges
+    leg = Leg("pick", 0, route)  # any leg kind: the zones are the roadmap's, not the order's
+    with speed_limits(agv.orders, agv.roadmap, leg, agv.v3.leg_speed_limits):
+        assert [agv.roadmap.edge(a, b).speed_limit for a, b in itertools.pairwise(route)] == [0.25, 0.25, 1.0]
+    assert [agv.roadmap.edge(a, b).speed_limit for a, b in itertools.pairwise(route)] == [1.0, 1.0, 1.0]
+    agv.backend.close()

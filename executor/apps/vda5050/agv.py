@@ -475,8 +475,8 @@ class Agv(AgvInstantActions, AgvJournal):
         self.log(f"agv: {leg.kind} failed: {reason}: {message}")
 
     def _speed_limits(self, leg: Leg) -> contextlib.AbstractContextManager[None]:
-        """The order's `maxSpeed` on the leg's roadmap edges while it runs (`legs.speed_limits`)."""
-        return speed_limits(self.orders, self.roadmap, leg)
+        """The order's `maxSpeed` (3.0: and SPEED_LIMIT zones) on the leg's roadmap edges while it runs."""
+        return speed_limits(self.orders, self.roadmap, leg, self.v3.leg_speed_limits if self.v3 else None)
 
     def _set(self, action: Action, status: ActionStatus) -> None:
         """Move an order action on; while it is PAUSED the new status waits for the resume. Nothing when its

@@ -358,6 +358,12 @@ class V3Side:
         self.orders = orders
         self._requests: list[dict[str, Any]] = []
 
+    def leg_speed_limits(self, route: tuple[str, ...]) -> dict[int, float]:
+        """The SPEED_LIMIT zones' `maximumSpeed` (m/s) by edge of a leg's route, as the leg starts (a zone set
+        enabled after the order was taken, too)."""
+        path = order_path(self.inbound.roadmap, [{"nodeId": n, "released": True} for n in route])
+        return self.zones.edge_speed_limits(self.inbound.footprint, path)
+
     def tick(self, controls: AgvControls, snap: Snapshot) -> bool:
         """The zone guard on one control tick (executor thread); True when the hold or the zone requests
         changed (a state is due)."""

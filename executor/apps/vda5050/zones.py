@@ -12,8 +12,9 @@ drives there (an edge driven in reverse turns the forks behind):
   the set was enabled) holds before it (`BLOCKED_ZONE_AHEAD`, CRITICAL) until the zone set or the order
   changes; standing inside one is a `BLOCKED_ZONE_VIOLATION` (CRITICAL).
 - SPEED_LIMIT: every order edge whose path touches one gets that `maximumSpeed` (the lowest of several),
-  so the truck slows on the edge before it enters the zone (section 6.4.1.1) and keeps the limit inside.
-  Orders received after the set was enabled.
+  so the truck slows on the edge before it enters the zone (section 6.4.1.1) and keeps the limit inside:
+  on orders received after the set was enabled, and on the roadmap edges of every leg that starts afterwards
+  (`legs.speed_limits`); a leg already running keeps its speeds.
 - LINE_GUIDED: honoured as it is: the truck only ever drives the roadmap's edges.
 - PRIORITY, PENALTY: honoured as they are: the truck plans no route of its own (the order's edges).
 - RELEASE: entered only with the master's grant (`release.ReleaseGate`: zone requests, responses); a
