@@ -298,7 +298,8 @@ class ZoneGuard:
         pose = (snap.x, snap.y, snap.theta)
         inside = [z for z in active if z.zone_type in (ZoneType.BLOCKED, ZoneType.RELEASE)]
         inside = [z for z in inside if contour_hits(self.footprint, pose, z)]
-        ahead = self._met_ahead(orders, snap) if orders.nodes else {}
+        guarded = any(z.zone_type in (ZoneType.BLOCKED, ZoneType.RELEASE) for z in active)
+        ahead = self._met_ahead(orders, snap) if orders.nodes and guarded else {}
         reach = snap.speed**2 / (2.0 * self.decel) + HOLD_MARGIN_M + abs(snap.speed) * 0.2
         release_ahead = {k: v for k, v in ahead.items() if v[0].zone_type is ZoneType.RELEASE}
         release_inside = [z for z in inside if z.zone_type is ZoneType.RELEASE]
