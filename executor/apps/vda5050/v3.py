@@ -205,13 +205,16 @@ class V3Inbound:
     def _instant(self, doc: dict[str, Any]) -> tuple[str, dict[str, Any]] | None:
         passed = []
         for a in doc["actions"]:
-            if a["actionType"] not in OWN_INSTANT:
-                passed.append(a)
-                self.messages.instant_ids.setdefault(
-                    str(a["actionId"]), {"actionId": a["actionId"], "actionStatus": "WAITING"}
-                )
+            if a["actionType"] in OWN_INSTANT:
+                self._own(a)
                 continue
-            self._own(a)
+            passed.append(a)
+            action_id = str(a["actionId"])
+            with self.orders.lock:
+                taken = action_id in self.orders.actions  # an id in use: the order manager refuses it
+            if not taken:
+                with self.messages.instant_lock:
+                    self.messages.instant_ids.setdefault(action_id, {"actionId": action_id, "actionStatus": "WAITING"})
         return ("instantActions", instant_from_v3(doc, passed)) if passed else None
 
     def _own(self, a: dict[str, Any]) -> None:
@@ -219,11 +222,12 @@ class V3Inbound:
         kind, action_id = str(a["actionType"]), str(a["actionId"])
         params = {str(p["key"]): p["value"] for p in a.get("actionParameters", [])}
         why: str | None = None
+        m = self.messages
         if kind == "clearInstantActions":
-            m = self.messages
-            for store in (m.instant_ids, m.own_states):
-                for key in [k for k, v in store.items() if v.get("actionStatus") in ("FINISHED", "FAILED")]:
-                    del store[key]
+            with m.instant_lock:
+                for store in (m.instant_ids, m.own_states):
+                    for key in [k for k, v in store.items() if v.get("actionStatus") in ("FINISHED", "FAILED")]:
+                        del store[key]
         elif not isinstance(params.get("zoneSetId"), str):
             why = f"{kind} needs the parameter zoneSetId (a string)"
         elif kind == "enableZoneSet":
@@ -235,7 +239,8 @@ class V3Inbound:
             state["actionResult"] = why
             refs = (("actionId", action_id), ("actionType", kind))
             self._warn(AgvError("INVALID_INSTANT_ACTION", ErrorLevel.WARNING, why, refs))
-        self.messages.own_states[action_id] = state
+        with m.instant_lock:
+            m.own_states[action_id] = state
         self.log(f"agv: {kind} {params.get('zoneSetId', '')}: {why or 'done'}")
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import re
+import threading
 import time
 from typing import Any
 
@@ -83,6 +84,7 @@ class MessagesV3(Messages):
     """The AGV's outgoing messages in 3.0 (module docstring): the 2.1 builders' messages, renamed."""
 
     zones: ZoneStore
+    instant_lock: threading.Lock
     instant_ids: dict[str, dict[str, Any]]
     """The instant actions' last states by actionId (3.0 keeps them until clearInstantActions)."""
     own_states: dict[str, dict[str, Any]]
@@ -97,18 +99,21 @@ class MessagesV3(Messages):
         """Give the builder the zone store, the roadmap (plannedPath) and the RELEASE zones' requests."""
         self.zones, self.roadmap, self.gate = zones, roadmap, gate
         self.instant_ids, self.own_states = {}, {}
+        self.instant_lock = threading.Lock()
+        """Guards `instant_ids` and `own_states` (the network thread adds, the publisher reads)."""
 
     def state(self, orders: OrderManager, snap: Snapshot, **kw: Any) -> dict[str, Any]:
         """The 3.0 state (see the module docstring)."""
         s = super().state(orders, snap, **kw)
         self.last_state_header = int(s["headerId"])
-        order_states, instant_states = [], []
-        for a in s["actionStates"]:
-            if a["actionId"] in self.instant_ids:
-                self.instant_ids[a["actionId"]] = _action_state(a)
-            else:
-                order_states.append(_action_state(a))
-        instant_states = [*self.instant_ids.values(), *self.own_states.values()]
+        order_states = []
+        with self.instant_lock:
+            for a in s["actionStates"]:
+                if a["actionId"] in self.instant_ids:
+                    self.instant_ids[a["actionId"]] = _action_state(a)
+                else:
+                    order_states.append(_action_state(a))
+            instant_states = [*self.instant_ids.values(), *self.own_states.values()]
         battery = s["batteryState"]
         out: dict[str, Any] = {k: s[k] for k in ("headerId", "timestamp", "version", "manufacturer", "serialNumber")}
         out["maps"] = s["maps"]
