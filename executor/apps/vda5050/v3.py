@@ -244,6 +244,9 @@ class V3Inbound:
         self.log(f"agv: {kind} {params.get('zoneSetId', '')}: {why or 'done'}")
 
 
+CONTOUR_MARGIN_M = 0.1
+"""m: the truck's contour for zones is its body and forks grown by this on every side (a pallet's overhang
+beyond the fork tips, localization error)."""
 HOLD_MARGIN_M = 0.5
 """m: the truck holds this far (plus its braking distance) before a BLOCKED zone."""
 
@@ -355,7 +358,8 @@ class V3Side:
     ) -> None:
         assert isinstance(messages, MessagesV3)
         params = loaded.vehicle
-        footprint = Footprint(params.body.rear_x, backend.forks.tip_x, params.body.width)
+        m = CONTOUR_MARGIN_M
+        footprint = Footprint(params.body.rear_x - m, backend.forks.tip_x + m, params.body.width + 2 * m)
         self.zones = ZoneStore(loaded.config.map_name)
         self.gate = ReleaseGate()
         messages.attach(self.zones, loaded.roadmap, self.gate)

@@ -5,8 +5,9 @@ Zone sets come on the `zoneSet` topic (DISABLED when new, section 6.4.2), are en
 held is not taken (`DUPLICATE_ZONE_SET`, WARNING). A set for another mapId than the AGV's map is refused.
 
 Zone types (`ZoneType`), all contour-based ones checked with the truck's contour (`Footprint`: the body and
-the forks, forklift frame, its origin at the fork heels) at every 5 cm of the path, headed as the truck
-drives there (an edge driven in reverse turns the forks behind):
+the forks, forklift frame, its origin at the fork heels; the AGV grows it by `v3.CONTOUR_MARGIN_M` for a
+load's overhang) at every 5 cm of the path, headed as the truck drives there (an edge driven in reverse turns
+the forks behind):
 - BLOCKED: an order whose path from its first node to its last released node crosses one is refused
   (`NO_ROUTE_TO_TARGET`, naming the zone and the edge), and a truck that would enter one (an order taken before
   the set was enabled) holds before it (`BLOCKED_ZONE_AHEAD`, CRITICAL) until the zone set or the order
