@@ -4,7 +4,8 @@ One local broker (`executor.vda5050.broker.Broker`: mosquitto, else amqtt; `--br
 loopback port; `--agvs N` AGVs, each a `palletpilot agv --config <its agv.yaml> --sim
 missions/suite/floor_b2.yaml --labels truth --seed <its seed>` subprocess with a serial number of its own
 (0001, 0002, ...) and a simulated warehouse of its own
-(the example warehouse, the truck at `b1`, driven in real time at 20 Hz by the MPC follower); and a master in
+(the example warehouse, the truck at `b1`, driven in real time at 20 Hz by the MPC follower), all speaking
+`--protocol` (2.1.0, or 3.0.0: `vda5050/v3/...` topics and 3.0 messages); and a master in
 this process (paho) that subscribes to every AGV's `state` and `connection` and gives each AGV
 `--orders-per-agv K` move orders one after the other: each along 1 to `--edges-per-order` edges of the
 warehouse's one-way loop (seeded), starting where the previous one ended, the next sent once the previous is
@@ -70,6 +71,8 @@ from palletpilot.executor.apps.vda5050.broker import KINDS, Broker
 from palletpilot.geometry import PalletpilotError
 
 STATE_LATENCY_GOAL_MS = 50.0
+PROTOCOLS = ("2.1.0", "3.0.0")
+PREFIXES = {"2.1.0": "uagv/v2/palletpilot", "3.0.0": "vda5050/v3/palletpilot"}
 LOOP = ["b1", "b2", "b3", "b_top", "t_e", "t_w", "a_top", "a1", "a2", "a3", "a_bot", "c_w", "j_charge", "j_drop"]
 LOOP += ["c_e", "b_bot"]  # the example warehouse's one-way loop, from the scenario's start node b1
 SCENARIO = ("missions", "suite", "floor_b2.yaml")  # the truck at b1, facing up aisle B
@@ -99,6 +102,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="each AGV publishes its state on events and at least this often (s)",
     )
     parser.add_argument("--visualization-hz", type=count(0, 20), default=2, help="each AGV's visualization rate")
+    parser.add_argument(
+        "--protocol",
+        choices=PROTOCOLS,
+        default=PROTOCOLS[0],
+        help="the VDA 5050 version the AGVs and the master speak (3.0.0: vda5050/v3 topics, 3.0 messages)",
+    )
     parser.add_argument(
         "--broker",
         choices=KINDS,
@@ -143,11 +152,11 @@ class _Agv:
 class _Master:
     """The master: every AGV's state and connection through one paho client; receipt times on both clocks."""
 
-    def __init__(self, port: int, agvs: dict[str, _Agv], prefix: str) -> None:
+    def __init__(self, port: int, agvs: dict[str, _Agv], prefix: str, protocol: str = PROTOCOLS[0]) -> None:
         import paho.mqtt.client as mqtt
         from paho.mqtt.enums import CallbackAPIVersion
 
-        self.agvs, self.prefix = agvs, prefix
+        self.agvs, self.prefix, self.protocol = agvs, prefix, protocol
         self.lock = threading.Lock()
         self.latencies_s: list[float] = []
         self.latencies_driving_s: list[float] = []  # those of states showing the truck driving
@@ -223,16 +232,16 @@ class _Master:
                         "edgeId": f"{path[i - 1]}-{node}",
                         "sequenceId": 2 * i - 1,
                         "released": True,
-                        "startNodeId": path[i - 1],
-                        "endNodeId": node,
                         "actions": [],
                     }
                 )
+                if self.protocol == "2.1.0":  # 3.0 edges join their nodes by sequenceId
+                    edges[-1].update(startNodeId=path[i - 1], endNodeId=node)
         agv.header += 1
         doc = {
             "headerId": agv.header,
             "timestamp": Stamper()(),
-            "version": "2.1.0",
+            "version": self.protocol,
             "manufacturer": "palletpilot",
             "serialNumber": agv.serial,
             "orderId": order_id,
@@ -264,7 +273,10 @@ def _write_config(folder: Path, serial: str, port: int, args: argparse.Namespace
         vehicle=str(bundled_path("missions", "forklift.yaml")),
         state_interval_s=float(args.state_interval_s),
         visualization_hz=float(args.visualization_hz),
+        protocol_version=args.protocol,
     )
+    if args.protocol != "2.1.0":
+        doc["interface_name"] = None  # the version's own (vda5050 on 3.0)
     path = folder / f"agv-{serial}.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path
@@ -375,7 +387,7 @@ def run(args: argparse.Namespace) -> dict:
         master: _Master | None = None
         try:
             broker.start()
-            master = _Master(broker.port, agvs, "uagv/v2/palletpilot")
+            master = _Master(broker.port, agvs, PREFIXES[args.protocol], args.protocol)
             if not master.connected.wait(10):
                 raise FleetBenchError(f"bench fleet: the master could not connect to {broker!r}")
             ready: queue.Queue[tuple[str, str]] = queue.Queue()
@@ -390,7 +402,8 @@ def run(args: argparse.Namespace) -> dict:
                 master.close()
             _stop_all(list(agvs.values()))
             broker.stop()
-    return {"agvs": args.agvs, "seed": args.seed, "broker": broker.kind, "startup_s": round(startup_s, 1), **figures}
+    head = {"agvs": args.agvs, "protocol": args.protocol, "seed": args.seed, "broker": broker.kind}
+    return {**head, "startup_s": round(startup_s, 1), **figures}
 
 
 def _wait_ready(

@@ -27,14 +27,15 @@ def accepts(port: int) -> bool:
 
 
 @needs_broker
-def test_two_agvs_finish_their_orders() -> None:
+@pytest.mark.parametrize("protocol", ["2.1.0", "3.0.0"])
+def test_two_agvs_finish_their_orders(protocol: str) -> None:
     cmd = [sys.executable, "-m", "palletpilot.cli", "bench", "fleet", "--json", "--agvs", "2"]
-    cmd += ["--orders-per-agv", "1", "--edges-per-order", "1", "--seed", "3"]
+    cmd += ["--orders-per-agv", "1", "--edges-per-order", "1", "--seed", "3", "--protocol", protocol]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     assert done.returncode == 0, done.stderr[-2000:]
     figures = json.loads(done.stdout)
     assert KEYS <= set(figures)
-    assert figures["agvs"] == 2 and figures["orders"] == 2
+    assert figures["agvs"] == 2 and figures["orders"] == 2 and figures["protocol"] == protocol
     assert figures["orders_finished"] == figures["orders"], figures["failures"]
     assert figures["state_latency_ms_p99"] is not None and figures["state_latency_ms_p99"] >= 0
     assert figures["order_to_motion_ms_p99"] is not None and figures["order_to_motion_ms_p99"] > 0

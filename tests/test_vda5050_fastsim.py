@@ -65,6 +65,10 @@ class FastAgv:
         head = {"headerId": self.header_id, "timestamp": validation.Stamper()(), **HEAD}
         self.agv.on_message(topic, json.dumps({**head, **doc}).encode())
 
+    def state(self) -> dict[str, Any]:
+        """The AGV's state now, as a 2.x master reads it."""
+        return self.agv.state_message()
+
     def tick(self) -> None:
         """The clock hook: the AGV's own sampling, then what is due, then the checks."""
         self.agv._on_tick()

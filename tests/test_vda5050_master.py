@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 from test_vda5050_agv import AGV, PATH, SCENARIO, TAIL
 from test_vda5050_mqtt import MISSIONS, ROOT, Broker, action, make_order, needs_broker, write_config
+from vda_master.bridge_v3 import Bridge
 
 HARNESS = Path(__file__).resolve().parent / "vda_master"
 CACHE = ROOT / ".cache" / "vda_master"
@@ -112,13 +113,20 @@ pallets:
 """
 
 
-def run_scenario(tmp_path: Path, start: str, steps: list[dict[str, Any]], timeout_s: int = 150) -> dict[str, Any]:
+def run_scenario(
+    tmp_path: Path, start: str, steps: list[dict[str, Any]], timeout_s: int = 150, version: str = "2.1.0"
+) -> dict[str, Any]:
     """`palletpilot agv --sim --sim-speed 4` from roadmap node `start`, the independent master running `steps`
-    (master.js); its summary, after the AGV ended cleanly."""
+    (master.js); its summary, after the AGV ended cleanly. With `version` 3.0.0 the AGV speaks 3.0 and the
+    master's messages go through `vda_master/bridge_v3.Bridge` both ways; the summary then has the bridge's
+    `bridge_problems` (schema problems, both sides) and `bridge_counts` (messages per direction and topic)."""
     harness = node_harness()
     broker = Broker(tmp_path)
     broker.start()
-    config = write_config(tmp_path, broker.port)
+    v3 = version.startswith("3.")
+    extra: dict[str, Any] = {"protocol_version": version, "interface_name": None} if v3 else {}
+    config = write_config(tmp_path, broker.port, **extra)
+    bridge = Bridge(broker.port) if v3 else None
     scenario = tmp_path / "scenario.yaml"
     scenario.write_text(START.format(map=MISSIONS / "warehouse.yaml", forks=MISSIONS / "forks.yaml", start=start))
     (tmp_path / "steps.json").write_text(json.dumps({"steps": steps}))
@@ -144,7 +152,8 @@ def run_scenario(tmp_path: Path, start: str, steps: list[dict[str, Any]], timeou
     )
     try:
         assert agv.stdout is not None
-        assert agv.stdout.readline().startswith("agv ready: uagv/v2/palletpilot/0001/")
+        prefix = "vda5050/v3" if v3 else "uagv/v2"
+        assert agv.stdout.readline().startswith(f"agv ready: {prefix}/palletpilot/0001/")
         master = subprocess.run(
             [
                 "node",
@@ -165,11 +174,15 @@ def run_scenario(tmp_path: Path, start: str, steps: list[dict[str, Any]], timeou
         assert agv.poll() is None, f"the AGV exited with {agv.returncode}"
         agv.send_signal(signal.SIGTERM)
         assert agv.wait(timeout=30) == 0
+        if bridge is not None:
+            summary["bridge_problems"], summary["bridge_counts"] = bridge.problems, bridge.counts
         return summary
     finally:
         if agv.poll() is None:
             agv.kill()
             agv.wait()
+        if bridge is not None:
+            bridge.close()
         broker.stop()
         log.close()
         print((tmp_path / "agv.log").read_text()[-3000:])

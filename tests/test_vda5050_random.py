@@ -1,9 +1,12 @@
 """A seeded, bounded random sequence of schema-valid messages at the in-process AGV in simulated time
 (`test_vda5050_fastsim.FastAgv`): orders along roadmap walks with picks and drops, updates at the decision
-point, stitches, stale resends, orders starting elsewhere, cancels, pauses and other instant actions. It
-asserts no exit of the executor thread, no internalError, every state schema-valid, and a standing truck
-after every failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPILOT_VDA_RANDOM_MESSAGES`
-(default 30) size it; the figures are printed (`pytest -s`)."""
+point, stitches, stale resends, orders starting elsewhere, cancels, pauses and other instant actions. It asserts
+no exit of the executor thread, no internalError, every state schema-valid, and a standing truck after every
+failed leg. `PALLETPILOT_VDA_RANDOM_RUNS` (default 3) and `PALLETPILOT_VDA_RANDOM_MESSAGES` (default 30) size
+it; the figures are printed (`pytest -s`). The same on a 3.0.0 AGV: the messages go through the test bridge's
+2.x -> 3.0 translation (`vda_master/bridge_v3`), zone sets (BLOCKED, SPEED_LIMIT and RELEASE boxes, enabled at
+once) and responses to the truck's zone requests come in among them, and every state is checked against the
+3.0.0 schema."""
 
 from __future__ import annotations
 
@@ -14,10 +17,29 @@ import time
 from pathlib import Path
 from typing import Any
 
-from test_vda5050_fastsim import FastAgv, fast_agv, state_problems
+import pytest
+from test_vda5050_fastsim import FastAgv, fast_agv
 from test_vda5050_mqtt import action, make_order
+from test_vda5050_v3 import FastAgvV3, fast_agv_v3
+from vda_master.bridge_v3 import instant_to_v3, order_to_v3, state_to_v2
 
+from palletpilot.executor.apps.vda5050 import validation
 from palletpilot.geometry import angle_diff
+
+
+class TranslatedV3(FastAgvV3):
+    """A 3.0 AGV that the 2.x random master talks to through the bridge's translations."""
+
+    def send(self, topic: str, doc: dict[str, Any]) -> None:
+        if topic == "order":
+            doc = order_to_v3({**doc, "version": "2.1.0"})
+        elif topic == "instantActions":
+            doc = instant_to_v3({**doc, "version": "2.1.0"})
+        super().send(topic, {k: v for k, v in doc.items() if k != "version"})
+
+    def state(self) -> dict[str, Any]:
+        return state_to_v2(self.agv.state_message())
+
 
 # -- the random sequence ----------------------------------------------------------------------------------
 
@@ -36,10 +58,12 @@ class RandomMaster:
         ("pause", 1),
         ("resume", 3),
         ("instant", 2),
+        ("zones", 0),
     )
 
-    def __init__(self, fast: FastAgv, rng: random.Random) -> None:
+    def __init__(self, fast: FastAgv, rng: random.Random, zones: int = 0) -> None:
         self.fast, self.rng = fast, rng
+        self.kinds = [(k, zones if k == "zones" else w) for k, w in self.KINDS]
         self.roadmap = fast.agv.roadmap
         self.order_id, self.update, self.count = "", 0, 0
         self.nodes: list[tuple[str, int]] = []  # the last order's (nodeId, sequenceId), decision point last
@@ -114,9 +138,9 @@ class RandomMaster:
 
     def fire(self) -> str:
         """One message; returns its kind."""
-        kinds, weights = zip(*self.KINDS, strict=True)
+        kinds, weights = zip(*self.kinds, strict=True)
         kind = self.rng.choices(kinds, weights)[0]
-        agv, s = self.fast.agv, self.fast.agv.state_message()
+        agv, s = self.fast.agv, self.fast.state()
         self.count += 1
         if kind == "new":  # from where the truck is, or stitched at the decision point while it executes
             released = [n for n in s["nodeStates"] if n["released"]]
@@ -145,18 +169,50 @@ class RandomMaster:
             if kind_of is None:
                 kind_of = self.rng.choice(["stateRequest", "factsheetRequest", "startCharging", "stopCharging"])
             self.fast.send("instantActions", {"actions": [action(kind_of, f"i{self.count}")]})
+        elif kind == "zones":
+            self.zone_set()
         else:
             return "none"
         return kind
 
+    def zone_set(self) -> None:
+        """A 3.0 zone set: a BLOCKED, SPEED_LIMIT or RELEASE box around a random roadmap node, enabled at once;
+        or, half the time while the truck has zone requests, a response to one (any grant type)."""
+        requests = self.fast.agv.state_message().get("zoneRequests", [])
+        if requests and self.rng.random() < 0.5:
+            grant = self.rng.choice(["GRANTED", "GRANTED", "QUEUED", "REJECTED", "REVOKED"])
+            response = {"requestId": self.rng.choice(requests)["requestId"], "grantType": grant}
+            self.fast.send("responses", {"responses": [response]})
+            return
+        node = self.rng.choice([n for n in self.roadmap.nodes() if not n.temporary]).pose
+        half = self.rng.uniform(0.3, 1.5)
+        x0, y0, x1, y1 = node.x - half, node.y - half, node.x + half, node.y + half
+        zone: dict[str, Any] = {
+            "zoneId": f"z{self.count}",
+            "zoneType": self.rng.choice(["BLOCKED", "SPEED_LIMIT", "RELEASE"]),
+        }
+        zone["vertices"] = [{"x": x0, "y": y0}, {"x": x1, "y": y0}, {"x": x1, "y": y1}, {"x": x0, "y": y1}]
+        if zone["zoneType"] == "SPEED_LIMIT":
+            zone["maximumSpeed"] = self.rng.uniform(0.1, 0.5)
+        set_id = f"set{self.count}"
+        self.fast.send("zoneSet", {"zoneSet": {"mapId": "warehouse", "zoneSetId": set_id, "zones": [zone]}})
+        self.fast.send("instantActions", {"actions": [action("enableZoneSet", f"e{self.count}", zoneSetId=set_id)]})
 
-def random_run(tmp_path: Path, seed: int, messages: int) -> dict[str, Any]:
-    """One seeded run: `messages` messages at random simulated intervals; the figures of the run."""
+
+def random_run(tmp_path: Path, seed: int, messages: int, version: str = "2.1.0") -> dict[str, Any]:
+    """One seeded run: `messages` messages at random simulated intervals; the figures of the run. On 3.0.0
+    the AGV speaks 3.0 (`TranslatedV3`) and zone sets come in too."""
     rng = random.Random(seed)
     tmp_path.mkdir(parents=True, exist_ok=True)
-    fast = fast_agv(tmp_path, seed=seed, start=rng.choice(["a2", "b_bot", "c_w"]))
+    start = rng.choice(["a2", "b_bot", "c_w"])
+    v3 = version.startswith("3.")
+    fast: FastAgv = fast_agv(tmp_path, seed=seed, start=start) if not v3 else _translated(tmp_path, start)
     agv = fast.agv
-    master = RandomMaster(fast, rng)
+    master = RandomMaster(fast, rng, zones=3 if v3 else 0)
+
+    def state_problems(fast: FastAgv) -> list[str]:
+        return validation.problems("state", fast.agv.state_message(), version)
+
     fired: list[str] = []
     invalid: list[list[str]] = []
     moving_while_halted: list[tuple[float, str, float]] = []
@@ -207,14 +263,22 @@ def random_run(tmp_path: Path, seed: int, messages: int) -> dict[str, Any]:
     }
 
 
-def test_random_valid_messages_never_end_the_agv(tmp_path: Path) -> None:
+def _translated(tmp_path: Path, start: str) -> TranslatedV3:
+    fast = fast_agv_v3(tmp_path, start=start)
+    out = TranslatedV3(fast.agv, fast.lines)
+    fast.agv.backend.clock.hook = out.tick
+    return out
+
+
+@pytest.mark.parametrize("version", ["2.1.0", "3.0.0"])
+def test_random_valid_messages_never_end_the_agv(tmp_path: Path, version: str) -> None:
     runs = int(os.environ.get("PALLETPILOT_VDA_RANDOM_RUNS", "3"))
     messages = int(os.environ.get("PALLETPILOT_VDA_RANDOM_MESSAGES", "30"))
     started = time.monotonic()
-    figures = [random_run(tmp_path / f"run{seed}", seed, messages) for seed in range(1, runs + 1)]
+    figures = [random_run(tmp_path / f"run{seed}", seed, messages, version) for seed in range(1, runs + 1)]
     total = sum(f["messages"] for f in figures)
     print(
-        f"random sequence: {runs} runs, {total} messages, {sum(f['states'] for f in figures)} states, "
+        f"random sequence ({version}): {runs} runs, {total} messages, {sum(f['states'] for f in figures)} states, "
         f"{sum(f['legs'] for f in figures)} legs ({sum(f['failed_legs'] for f in figures)} failed), "
         f"{sum(f['sim_s'] for f in figures):.0f} s simulated in {time.monotonic() - started:.0f} s, exits 0"
     )

@@ -28,6 +28,10 @@ truck goes on up to the last released node.
 
 Instant actions: `instant.AgvInstantActions` (a base of `Agv`) runs them on the network thread.
 
+VDA 5050 3.0.0 (`protocol_version: 3.0.0`): the same AGV behind a version layer (`v3.V3Side`): messages in are
+checked and translated to the 2.1 form before `on_message` goes on, `v3_out.MessagesV3` builds the messages
+out, and its zone guard runs on every tick.
+
 Crash safety: `restart.AgvJournal` (a base of `Agv`) checkpoints to the journal (`persist`) on every
 `changed()` and restores the last checkpoint after a restart, with its safe rule.
 
@@ -72,6 +76,7 @@ from palletpilot.executor.apps.vda5050.persist import Persister
 from palletpilot.executor.apps.vda5050.restart import AgvJournal
 from palletpilot.executor.apps.vda5050.routes import DEFAULT_DEVIATION_XY, pallet_name
 from palletpilot.executor.apps.vda5050.state import Messages, Snapshot, error_type, reason_level
+from palletpilot.executor.apps.vda5050.v3 import V3, MessagesV3, V3Side
 from palletpilot.executor.apps.vda5050.validation import Headers
 from palletpilot.executor.apps.vda5050.vehicle import Backend
 from palletpilot.executor.core.behaviour import Settings
@@ -132,7 +137,7 @@ class Agv(AgvInstantActions, AgvJournal):
         self.orders = OrderManager(loaded.roadmap, cfg.map_name, loaded.vehicle)
         version = hashlib.sha256(loaded.map_path.read_bytes()).hexdigest()[:12]
         headers = Headers(cfg.protocol_version, cfg.manufacturer, cfg.serial_number)
-        self.messages = Messages(
+        self.messages = (MessagesV3 if cfg.protocol_version == V3 else Messages)(
             headers,
             cfg.map_name,
             version,
@@ -142,6 +147,10 @@ class Agv(AgvInstantActions, AgvJournal):
             cfg.max_load_kg,
             fork_length=backend.forks.tip_x,
         )
+        self.v3: V3Side | None = (
+            V3Side(self.orders, self.messages, loaded, backend, log) if cfg.protocol_version == V3 else None
+        )
+        """The 3.0 version layer (`v3`): its inbound side, zones and zone guard; None on 2.x."""
         self.software_version = software_version
         self.settings = settings or Settings()
         self.controls = AgvControls()
@@ -251,18 +260,17 @@ class Agv(AgvInstantActions, AgvJournal):
 
     # -- messages in (network thread) ---------------------------------------------------------------
     def on_message(self, name: str, payload: bytes) -> None:
-        """An order or instantActions message from the broker."""
+        """An order or instantActions message from the broker (3.0: and zoneSet, responses; via `v3`)."""
         doc, why = validation.parse_message(payload)
         if doc is None:
             self.orders.malformed(name, why or "unreadable")
             self.log(f"agv: {name}: {why}")
             self._note("message_rejected", topic=name, why=why)
-        elif name == "order":
-            self._follow_version(doc)
-            self._order(doc)
-        elif name == "instantActions":
-            self._follow_version(doc)
-            self._instant(doc)
+        elif (routed := (name, doc) if self.v3 is None else self.v3.inbound.handle(name, doc)) is not None:
+            if self.v3 is None and routed[0] in ("order", "instantActions"):
+                self._follow_version(routed[1])
+            if routed[0] in ("order", "instantActions"):
+                (self._order if routed[0] == "order" else self._instant)(routed[1])
         self.changed()
 
     def _follow_version(self, doc: dict[str, Any]) -> None:
@@ -467,8 +475,8 @@ class Agv(AgvInstantActions, AgvJournal):
         self.log(f"agv: {leg.kind} failed: {reason}: {message}")
 
     def _speed_limits(self, leg: Leg) -> contextlib.AbstractContextManager[None]:
-        """The order's `maxSpeed` on the leg's roadmap edges while it runs (`legs.speed_limits`)."""
-        return speed_limits(self.orders, self.roadmap, leg)
+        """The order's `maxSpeed` (3.0: and SPEED_LIMIT zones) on the leg's roadmap edges while it runs."""
+        return speed_limits(self.orders, self.roadmap, leg, self.v3.leg_speed_limits if self.v3 else None)
 
     def _set(self, action: Action, status: ActionStatus) -> None:
         """Move an order action on; while it is PAUSED the new status waits for the resume. Nothing when its
@@ -578,6 +586,8 @@ class Agv(AgvInstantActions, AgvJournal):
                     tol = float(pos.get("allowedDeviationXY", 0.0)) or DEFAULT_DEVIATION_XY
                     if math.hypot(n.pose.x - snap.x, n.pose.y - snap.y) <= tol:
                         o.arrive(n.id)
+        if self.v3 is not None:
+            changed = self.v3.tick(self.controls, snap) or changed
         last = (o.last_node_id, o.last_node_seq)
         if last != self._last_node:
             self._last_node, self.distance, changed = last, 0.0, True

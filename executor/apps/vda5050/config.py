@@ -14,10 +14,12 @@ broker:
   keepalive_s: 15            # MQTT keep-alive: the broker's heartbeat (section 6.14: about 15 s)
   reconnect_min_s: 1         # reconnect backoff (s): from this, doubling up to reconnect_max_s
   reconnect_max_s: 30
-interface_name: uagv         # topics: <interface_name>/v2/<manufacturer>/<serial_number>/<topic>
+interface_name: uagv         # topics: <interface_name>/v<major>/<manufacturer>/<serial_number>/<topic>
+                             # (default: uagv on 2.x, vda5050 on 3.0.0: vda5050/v3/...)
 manufacturer: palletpilot
 serial_number: "0001"        # A-Z a-z 0-9 _ . : -
-protocol_version: 2.1.0      # the version this AGV speaks ("2.1.0" or "2.0.0"); masters of any 2.x are read
+protocol_version: 2.1.0      # the version this AGV speaks: "2.1.0" (2.x masters are read) or "2.0.0", or
+                             # "3.0.0" (3.0 only: its topics, fields, zones; the `v3` version layer)
 map: warehouse.yaml          # the roadmap (relative to this file)
 map_id: warehouse            # optional: the mapId of that map (default: the map file's name without suffix)
 vehicle: forklift.yaml       # optional: the vehicle file (default: the map's `vehicle`)
@@ -98,10 +100,10 @@ class AgvConfig(FileModel):
     """The `agv.yaml` file (see the module docstring)."""
 
     broker: BrokerConfig = BrokerConfig()
-    interface_name: str = Field("uagv", min_length=1, max_length=64, pattern=_LEVEL)
+    interface_name: str | None = Field(None, min_length=1, max_length=64, pattern=_LEVEL)
     manufacturer: str = Field(min_length=1, max_length=64, pattern=_LEVEL)
     serial_number: str = Field(min_length=1, max_length=64, pattern=_SERIAL)
-    protocol_version: Literal["2.1.0", "2.0.0"] = "2.1.0"
+    protocol_version: Literal["2.1.0", "2.0.0", "3.0.0"] = "2.1.0"
     map: str = Field(min_length=1, max_length=4096)
     map_id: str | None = Field(None, min_length=1, max_length=128)
     vehicle: str | None = Field(None, min_length=1, max_length=4096)
@@ -123,7 +125,8 @@ class AgvConfig(FileModel):
     def topic_prefix(self) -> str:
         """`<interfaceName>/v<major>/<manufacturer>/<serialNumber>` (section 6.3)."""
         major = self.protocol_version.split(".")[0]
-        return f"{self.interface_name}/v{major}/{self.manufacturer}/{self.serial_number}"
+        interface = self.interface_name or ("vda5050" if major == "3" else "uagv")
+        return f"{interface}/v{major}/{self.manufacturer}/{self.serial_number}"
 
     @property
     def map_name(self) -> str:

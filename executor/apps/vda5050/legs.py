@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import itertools
+import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -42,10 +43,12 @@ class AgvControls(Controls):
         """A roadmap node the running leg waits to be allowed to enter."""
         self.stopping = False
         """A cancelOrder waits for the truck to stand before it cancels the leg."""
+        self.zone_hold = False
+        """A 3.0 AGV holds before a BLOCKED zone (`v3.ZoneGuard`)."""
 
     def refresh(self) -> None:
-        """Recompute `paused` from the master's pause, the gate and a cancel's stop."""
-        self.paused = self.master_pause or self.gate is not None or self.stopping
+        """Recompute `paused` from the master's pause, the gate, a cancel's stop and a zone hold."""
+        self.paused = self.master_pause or self.gate is not None or self.stopping or self.zone_hold
 
     def reset(self) -> None:
         """Clear a cancel, its stop and the gate; the master's pause stays."""
@@ -71,20 +74,32 @@ class OrderPlanner(Planner):
 
 
 @contextlib.contextmanager
-def speed_limits(orders: OrderManager, roadmap: Roadmap, leg: Leg) -> Iterator[None]:
-    """Slow the roadmap edges of a move leg to the order's `maxSpeed` (m/s) for the leg, then restore them."""
-    replaced: list[Edge] = []
+def speed_limits(
+    orders: OrderManager,
+    roadmap: Roadmap,
+    leg: Leg,
+    zone_limits: Callable[[tuple[str, ...]], dict[int, float]] | None = None,
+) -> Iterator[None]:
+    """Slow the roadmap edges of a move leg to the order's `maxSpeed` (m/s) for the leg, and the edges of any
+    leg to `zone_limits(route)` (m/s by the index of the route's edge: a 3.0 AGV's SPEED_LIMIT zones), then
+    restore them."""
+    limits: dict[int, float] = dict(zone_limits(leg.route)) if zone_limits is not None else {}
     if leg.kind == "move":
         with orders.lock:
             first = orders.cursor - 1
             edges = orders.edges[first : first + len(leg.route) - 1]
-        for (a, b), e in zip(itertools.pairwise(leg.route), edges, strict=False):
-            limit = e.raw.get("maxSpeed")
-            old = roadmap.edge(a, b)
-            if limit is not None and float(limit) < old.speed_limit:
-                roadmap.remove_edge(a, b)
-                roadmap.add_edge(dataclasses.replace(old, speed_limit=float(limit)))
-                replaced.append(old)
+        for i, e in enumerate(edges):
+            if e.raw.get("maxSpeed") is not None:
+                limits[i] = min(limits.get(i, math.inf), float(e.raw["maxSpeed"]))
+    replaced: list[Edge] = []
+    for i, (a, b) in enumerate(itertools.pairwise(leg.route)):
+        if i not in limits or not roadmap.graph.has_edge(a, b):
+            continue
+        old = roadmap.edge(a, b)
+        if limits[i] < old.speed_limit:
+            roadmap.remove_edge(a, b)
+            roadmap.add_edge(dataclasses.replace(old, speed_limit=limits[i]))
+            replaced.append(old)
     try:
         yield
     finally:

@@ -40,6 +40,10 @@ class ErrorLevel(str, Enum):
     """`errorLevel`: WARNING (the AGV is ready to start) or FATAL (user intervention required)."""
 
     WARNING = "WARNING"
+    URGENT = "URGENT"
+    """3.0 only."""
+    CRITICAL = "CRITICAL"
+    """3.0 only: the truck stops, takes new orders (a 2.x state says FATAL)."""
     FATAL = "FATAL"
 
 
@@ -58,6 +62,8 @@ class ConnectionState(str, Enum):
     ONLINE = "ONLINE"
     OFFLINE = "OFFLINE"
     CONNECTIONBROKEN = "CONNECTIONBROKEN"
+    CONNECTION_BROKEN = "CONNECTION_BROKEN"
+    """3.0's spelling of CONNECTIONBROKEN."""
 
 
 class OperatingMode(str, Enum):

@@ -5,13 +5,14 @@ flags as section 6.2 and 6.14-6.15 say:
 
 | topic | direction | QoS | retained |
 | --- | --- | --- | --- |
-| `order`, `instantActions` | subscribed | 0 | - |
+| `order`, `instantActions` (3.0: and `zoneSet`, `responses`) | subscribed | 0 | - |
 | `state`, `visualization` | published | 0 | no |
 | `factsheet` | published | 0 | yes |
 | `connection` | published, and the last will | 1 | yes |
 
-On every (re)connection the last will is `CONNECTIONBROKEN` (retained, QoS 1); once connected the link
-subscribes, publishes `ONLINE`, the factsheet, and calls `on_connected` (the AGV republishes its state).
+On every (re)connection the last will is `CONNECTIONBROKEN` (3.0: `CONNECTION_BROKEN`; retained, QoS 1);
+once connected the link subscribes, publishes `ONLINE`, the factsheet, and calls `on_connected` (the AGV
+republishes its state).
 A clean `close()` publishes `OFFLINE` and disconnects (no will). Lost connections are retried by paho's
 network thread with exponential backoff (`reconnect_min_s` doubling to `reconnect_max_s`). While
 disconnected nothing is queued: `send` drops the message (QoS 0 state is current only when fresh) and
@@ -36,6 +37,9 @@ from palletpilot.executor.apps.vda5050.models import ConnectionState
 from palletpilot.executor.apps.vda5050.state import Messages
 
 QOS = {"state": 0, "visualization": 0, "factsheet": 0, "connection": 1, "order": 0, "instantActions": 0}
+SUBSCRIBED = ("order", "instantActions")
+SUBSCRIBED_V3 = (*SUBSCRIBED, "zoneSet", "responses")
+"""A 3.0 AGV also takes zone sets and the master's responses (QoS 0)."""
 RETAIN = {"state": False, "visualization": False, "factsheet": True, "connection": True}
 
 
@@ -133,7 +137,8 @@ class AgvLink:
         if getattr(reason, "is_failure", False):
             self.log(f"agv: broker refused the connection: {reason}")
             return
-        client.subscribe([(topic(self.prefix, "order"), 0), (topic(self.prefix, "instantActions"), 0)])
+        names = SUBSCRIBED_V3 if self.config.protocol_version.startswith("3.") else SUBSCRIBED
+        client.subscribe([(topic(self.prefix, name), 0) for name in names])
         self.connections += 1
         self.connected.set()
         self.log(f"agv: connected to {self.config.broker.host}:{self.config.broker.port} as {self.config.client_id}")

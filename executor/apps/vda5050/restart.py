@@ -123,8 +123,8 @@ class AgvJournal:
             why = f"{type(exc).__name__}: {exc}"
             raise JournalError(f"{source}: the last checkpoint cannot be restored: {why}") from None
         self.messages.headers.start_at(headers)
-        if doc.get("version") in ("2.0.0", "2.1.0"):
-            self.messages.headers.version = str(doc["version"])
+        if doc.get("version") in ("2.0.0", "2.1.0") and self.messages.headers.version.startswith("2."):
+            self.messages.headers.version = str(doc["version"])  # the 2.x minor a master spoke (never on 3.0)
         self.load = load
         self._carried_type = str(doc.get("carried_type") or "eur")
         self.controls.master_pause = bool(doc.get("paused"))

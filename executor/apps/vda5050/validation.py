@@ -1,13 +1,17 @@
-"""JSON schema validation of VDA 5050 2.1.0 messages, headers and timestamps.
+"""JSON schema validation of VDA 5050 2.1.0 and 3.0.0 messages, headers and timestamps.
 
 The schemas are the official 2.1.0 files vendored in `schemas/` (MIT licence, `schemas/LICENSE.txt`),
-with the three corrections of the specification's errata applied in memory (`schemas/README.md`).
+with the three corrections of the specification's errata applied in memory (`schemas/README.md`), and the
+official 3.0.0 files in `schemas/3.0.0/` with their trailing commas removed in memory
+(`schemas/3.0.0/README.md`). A 2.x version (2.0.0 masters are read with the 2.1.0 schemas) or 3.0.0 picks
+the set.
 `format: date-time` is checked (RFC 3339) by a format checker of our own, so no optional `jsonschema`
 extra is needed.
 
 Public API:
-- `TOPICS`: the six topics with a schema; `load_schema(topic)` (errata applied), `validator(topic)`;
-- `problems(topic, message)`: one line per schema violation (`nodes[0].sequenceId: -1 is less than ...`),
+- `TOPICS`: the six topics with a 2.1.0 schema, `TOPICS_V3` the eight of 3.0.0; `load_schema(topic, version=)`
+  (errata applied), `validator(topic, version=)`, `schema_set(version)` ("2.1.0" or "3.0.0");
+- `problems(topic, message, version=)`: one line per schema violation (`nodes[0].sequenceId: -1 is less than ...`),
   empty when the message is valid; `parse_message(payload)`: strict JSON (no NaN) of an object, or why not;
 - `format_timestamp(ms)`, `Stamper` (strictly increasing UTC timestamps with milliseconds and `Z`),
   `STRICT_TIMESTAMP` (the AGV's own format), `is_rfc3339(text)`;
@@ -31,6 +35,13 @@ from palletpilot.geometry.fileio import bundled_path
 
 TOPICS = ("order", "instantActions", "state", "visualization", "connection", "factsheet")
 """Topics with a JSON schema (`schemas/<topic>.schema`)."""
+TOPICS_V3 = (*TOPICS, "zoneSet", "responses")
+"""Topics with a 3.0.0 JSON schema (`schemas/3.0.0/<topic>.schema`)."""
+V2, V3 = "2.1.0", "3.0.0"
+"""The schema sets."""
+TRAILING_COMMAS_V3 = {"factsheet": 4, "order": 1, "visualization": 2}
+"""ERRATA.md of 3.0.0: the trailing commas of the published files (none in the others)."""
+_TRAILING_COMMA = re.compile(r",(\s*[}\]])")
 
 STRICT_TIMESTAMP = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d{3}Z")
 """The AGV's own timestamps: ISO 8601 in UTC with milliseconds and `Z` (`2017-04-15T11:40:03.120Z`)."""
@@ -80,24 +91,43 @@ def _apply_errata(topic: str, schema: dict[str, Any]) -> dict[str, Any]:
     return schema
 
 
+def schema_set(version: str) -> str:
+    """The schema set of a protocol version: `V3` for 3.x, else `V2` (2.0 and 2.1 masters alike)."""
+    return V3 if str(version).split(".")[0] == "3" else V2
+
+
 @cache
-def _schema_text(topic: str) -> str:
-    if topic not in TOPICS:
-        raise KeyError(f"no VDA 5050 schema for topic '{topic}' (one of {', '.join(TOPICS)})")
-    path = bundled_path("executor", "apps", "vda5050", "schemas", f"{topic}.schema")
+def _schema_text(topic: str, version: str = V2) -> str:
+    topics, folder = (TOPICS_V3, ("3.0.0",)) if schema_set(version) == V3 else (TOPICS, ())
+    if topic not in topics:
+        raise KeyError(f"no VDA 5050 {schema_set(version)} schema for topic '{topic}' (one of {', '.join(topics)})")
+    path = bundled_path("executor", "apps", "vda5050", "schemas", *folder, f"{topic}.schema")
     return path.read_text(encoding="utf-8")
 
 
-def load_schema(topic: str, errata: bool = True) -> dict[str, Any]:
-    """The 2.1.0 schema of a topic, with the errata applied unless `errata=False` (the file as published)."""
-    schema = json.loads(_schema_text(topic))
+def _repair_v3(topic: str, text: str) -> str:
+    """ERRATA.md of 3.0.0: remove the trailing commas, exactly as many as the published file has."""
+    fixed, count = _TRAILING_COMMA.subn(r"\1", text)
+    expected = TRAILING_COMMAS_V3.get(topic, 0)
+    if count != expected:
+        raise ValueError(f"3.0.0 {topic}.schema: {count} trailing commas, the published file has {expected}")
+    return fixed
+
+
+def load_schema(topic: str, errata: bool = True, version: str = V2) -> dict[str, Any]:
+    """The schema of a topic in the set of `version`, with the errata applied unless `errata=False` (the
+    file as published: a 3.0.0 file with trailing commas then raises `json.JSONDecodeError`)."""
+    text = _schema_text(topic, schema_set(version))
+    if schema_set(version) == V3:
+        return json.loads(_repair_v3(topic, text) if errata else text)
+    schema = json.loads(text)
     return _apply_errata(topic, schema) if errata else schema
 
 
 @cache
-def validator(topic: str) -> Draft202012Validator:
-    """A cached validator of a topic's schema (errata applied, date-time format checked)."""
-    schema = load_schema(topic)
+def validator(topic: str, version: str = V2) -> Draft202012Validator:
+    """A cached validator of a topic's schema in the set of `version` (errata applied, date-time checked)."""
+    schema = load_schema(topic, version=schema_set(version))
     Draft202012Validator.check_schema(schema)
     return Draft202012Validator(schema, format_checker=_FORMATS)
 
@@ -109,9 +139,11 @@ def _path(parts: Any) -> str:
     return out or "message"
 
 
-def problems(topic: str, message: object) -> list[str]:
-    """Every violation of the topic's schema, one line each (`field.path: what`); empty when valid."""
-    errors = sorted(validator(topic).iter_errors(message), key=lambda e: [str(p) for p in e.absolute_path])
+def problems(topic: str, message: object, version: str = V2) -> list[str]:
+    """Every violation of the topic's schema (the set of `version`), one line each (`field.path: what`);
+    empty when valid."""
+    check = validator(topic, schema_set(version))
+    errors = sorted(check.iter_errors(message), key=lambda e: [str(p) for p in e.absolute_path])
     return [f"{_path(e.absolute_path)}: {e.message}" for e in errors]
 
 
