@@ -78,8 +78,9 @@ class TemporaryNodes:
         )
 
 
+@dataclass(frozen=True)
 class Settings:
-    """Executor parameters (m, s, rad)."""
+    """Executor parameters (m, s, rad), immutable: a variant is `dataclasses.replace(settings, ...)`."""
 
     max_attempts: int = 3  # pallet estimates per pickup (the first one and the re-plans)
     # Alignment tolerances come from the fork and pocket geometry (`perception.alignment`), less these

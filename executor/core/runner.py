@@ -19,6 +19,7 @@ Public API: `Runner`, `TaskResult`, `SimClock`, `WallClock` (re-exported from `e
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import traceback
 from collections.abc import Callable, Sequence
@@ -104,13 +105,19 @@ class Runner:
         resume: ResumePoint | None = None,
         listeners: Sequence[RunObserver] = (),
         watchdog_limits: WatchdogLimits | None = None,
+        planner: Planner | None = None,
+        start_heading: float | None = None,
     ) -> None:
+        """A runner of `mission` from `start_node`, facing `start_heading` (rad, world frame; None: the
+        node's own yaw). `planner`: plans the tasks' routes (None: the roadmap's `Planner`; the AGV gives
+        one that answers with its order's edges). `resume`: continue from this checkpoint."""
         self.mission = mission
         self.pallet_types = mission.pallet_types()  # per task: the pallet it handles
         self.clock = clock
-        self.settings = settings or Settings()
-        if mission.blocked_wait_s is not None:
-            self.settings.blocked_wait_s = mission.blocked_wait_s
+        settings = settings or Settings()
+        if mission.blocked_wait_s is not None:  # the mission's own wait, for this run only
+            settings = dataclasses.replace(settings, blocked_wait_s=mission.blocked_wait_s)
+        self.settings = settings
         self.events = events
         self.progress = Progress(progress) if progress is not None else None
         self.controls = controls or Controls()
@@ -134,7 +141,7 @@ class Runner:
             vehicle=self.vehicle,
             perception=perception,
             roadmap=roadmap,
-            planner=Planner(roadmap),
+            planner=planner or Planner(roadmap),
             follower=follower or MpcFollower(params),
             params=params,
             forks=forks,
@@ -143,7 +150,7 @@ class Runner:
             now=self.task_time,
             log=self.log,
             at_node=start_node,
-            heading=start.pose.yaw,
+            heading=start.pose.yaw if start_heading is None else start_heading,
             jobs=Jobs(clock.deterministic, clock.now),
             clock_now=clock.now,
             frame=self._frame,

@@ -320,6 +320,12 @@ class Recorder(RecorderCamera, RecorderEvents):
         self._guard("start", lambda: self._start(name))
         return cast("VehiclePort", self.vehicle)
 
+    @property
+    def in_session(self) -> bool:
+        """True after `start_session`: every runner drives the session's vehicle wrapper (`attach` only
+        follows it)."""
+        return self._session
+
     def detach(self) -> None:
         """The end of a session's leg: ticks go on without a runner until the next `attach`."""
         self.runner = None

@@ -53,6 +53,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, cast
 
 from palletpilot.executor.adapters.local_perception import LocalPerception
+from palletpilot.executor.apps import compose
 from palletpilot.executor.apps.vda5050 import validation
 from palletpilot.executor.apps.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.apps.vda5050.config import Loaded
@@ -373,7 +374,7 @@ class Agv(AgvInstantActions, AgvJournal):
         self.leg = leg
         s = self.snapshot
         with self._speed_limits(leg), from_where_it_stands(self.roadmap, leg, s.x, s.y) as route:
-            runner = Runner(
+            parts = compose.Parts(
                 mission,
                 self.roadmap,
                 self.vehicle,
@@ -383,16 +384,15 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.backend.params,
                 self.backend.forks,
                 route[0],
-                settings=self.settings,
-                follower=self.backend.follower,
-                controls=self.controls,
-                listeners=[*self.backend.listeners, self._on_event],
+                self.backend.follower,
+                observers=(*self.backend.listeners, self._on_event),
+                planner=OrderPlanner(self.roadmap, route),
+                start_heading=self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw,
             )
-            runner.ctx.heading = self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw
-            runner.ctx.planner = OrderPlanner(self.roadmap, route)
+            runner = compose.build_runner(
+                parts, compose.Outputs(recorder=self.recorder), self.settings, controls=self.controls
+            )
             self.runner = runner
-            if self.recorder is not None:
-                self.recorder.attach(runner)
             try:
                 ok = runner.run()
             finally:
