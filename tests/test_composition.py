@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import json
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +19,20 @@ from test_runner_failsafe import VEHICLE, FakeVehicle
 
 from palletpilot.control.mpc import MpcFollower
 from palletpilot.executor.apps import compose
-from palletpilot.executor.core.behaviour import Settings
+from palletpilot.executor.core.behaviour import (
+    JOURNALLED,
+    NOT_JOURNALLED,
+    Context,
+    Settings,
+    TaskMemory,
+    TemporaryNodes,
+)
 from palletpilot.executor.core.clock import SimClock
-from palletpilot.executor.core.mission import load_mission
+from palletpilot.executor.core.mission import MoveTask, PickupTask, WaitTask, load_mission
 from palletpilot.executor.core.runner import Runner
+from palletpilot.geometry import SE2, SE3
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.specs import load_forks
 from palletpilot.roadmap import Planner, load_map
 
@@ -80,7 +90,7 @@ def test_a_missions_own_wait_leaves_the_callers_settings_alone(tmp_path: Path) -
 def test_build_runner_takes_the_planner_and_the_start_heading(tmp_path: Path) -> None:
     plain = compose.build_runner(_parts(tmp_path), compose.Outputs(), Settings())
     assert type(plain.ctx.planner) is Planner
-    assert plain.ctx.heading == plain.ctx.roadmap.node("charger").pose.yaw
+    assert plain.ctx.memory.heading == plain.ctx.roadmap.node("charger").pose.yaw
 
     class OrderPlanner(Planner):
         pass
@@ -89,7 +99,7 @@ def test_build_runner_takes_the_planner_and_the_start_heading(tmp_path: Path) ->
     planner = OrderPlanner(roadmap)
     runner = compose.build_runner(_parts(tmp_path, planner=planner, start_heading=1.25), compose.Outputs(), Settings())
     assert runner.ctx.planner is planner
-    assert runner.ctx.heading == 1.25 and runner.ctx.at_node == "charger"
+    assert runner.ctx.memory.heading == 1.25 and runner.ctx.memory.at_node == "charger"
 
 
 def test_no_composition_root_patches_a_runner_after_building_it() -> None:
@@ -106,3 +116,48 @@ def test_no_composition_root_patches_a_runner_after_building_it() -> None:
                 if ".ctx." in text or text.startswith("runner."):
                     patched.append(f"{path.relative_to(ROOT)}:{node.lineno}: {text}")
     assert patched == []
+
+
+def test_every_memory_field_is_journalled_or_says_why_not() -> None:
+    names = [f.name for f in dataclasses.fields(TaskMemory)]
+    assert sorted(names) == sorted([*JOURNALLED, *NOT_JOURNALLED]), "a new TaskMemory field: journal it or say why not"
+    assert not set(JOURNALLED) & set(NOT_JOURNALLED)
+    assert list(TaskMemory("a", 0.5).to_json()) == list(JOURNALLED)
+    deps = {f.name for f in dataclasses.fields(Context)} - {"memory"}
+    assert not deps & set(names), "a field is either injected or remembered, not both"
+
+
+def test_the_memory_a_checkpoint_stores_restores_the_same_memory() -> None:
+    cal = Calibration(SE3.from_translation(0.5, 0.0, 1.2), "model", {"fit_rms_m": 0.004})
+    temporary = TemporaryNodes(1, "slot~1", "pre~1", SE2(3.0, 1.0, 0.1), SE2(2.0, 1.0, 0.1), "n2", 0.1, ("n1", "n2"))
+    task = PickupTask(type="pickup", node="slot")
+    memory = TaskMemory("pre~1", 0.25, task=task, attempts=2, pallet_node="slot", pre_node="pre", node_before="n2")
+    memory.route_to_pre, memory.calibration, memory.temporary = ["s", "n2", "pre"], cal, [temporary]
+    memory.estimated_pallet = SE3.from_translation(3.1, 1.0, 0.0)
+    doc = json.loads(json.dumps(memory.to_json()))  # what the journal writes and reads back
+    again = TaskMemory("elsewhere", 0.0, task=task)
+    again.restore_position(doc)
+    assert again.restore_task(doc) == [temporary] and again.temporary == []  # the caller adds them back
+    assert again.to_json() | {"temporary": doc["temporary"]} == doc
+    assert again.calibration is not None and again.calibration.method == "model"
+    assert (again.at_node, again.heading, again.attempts, again.node_before) == ("pre~1", 0.25, 2, "n2")
+
+
+def test_a_new_task_forgets_the_last_ones_scratch_but_not_where_the_truck_stands() -> None:
+    memory = TaskMemory("pre", 1.0, attempts=3, route_to_pre=["a", "pre"], node_before="a", pallet_node="slot")
+    memory.temporary = [TemporaryNodes(1, "s~1", "p~1", SE2(0, 0, 0), SE2(1, 0, 0), "a", 0.0)]
+    move = MoveTask(type="move", node="drop")
+    memory.start_task(move)
+    assert (memory.task, memory.attempts, memory.temporary, memory.route_to_pre) == (move, 0, [], [])
+    assert (memory.at_node, memory.heading, memory.node_before) == ("pre", 1.0, "a")
+    assert memory.node_task() is move
+    with pytest.raises(TypeError, match="handles no load"):
+        memory.load_task()
+    with pytest.raises(TypeError, match="is no WaitTask"):
+        memory.task_of(WaitTask)
+
+
+def test_the_injected_dependencies_are_frozen(tmp_path: Path) -> None:
+    runner = compose.build_runner(_parts(tmp_path), compose.Outputs(), Settings())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        runner.ctx.planner = Planner(runner.ctx.roadmap)  # type: ignore[misc]

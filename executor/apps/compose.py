@@ -201,7 +201,7 @@ def write_run_report(
             runner.results,
             runner.ctx.roadmap,
             runner.trajectory,
-            runner.ctx.planned_paths,
+            runner.ctx.memory.planned_paths,
             truth_pallets=truth_pallets,
             extra=extra,
             obstacles=obstacles,

@@ -487,7 +487,7 @@ class Recorder(RecorderCamera, RecorderEvents):
         self.json["/vehicle/state"].log(json.dumps(state).encode(), log_time=ns)
         self.count_message("/vehicle/state")
         self._horizon(follower, ns)
-        planned = [] if runner is None else runner.ctx.planned_paths
+        planned = [] if runner is None else runner.ctx.memory.planned_paths
         if runner is not None and len(planned) != self._paths_seen:
             self._paths_seen = len(planned)
             self._path_points = [[Point3(x=x, y=y, z=0.0) for x, y in p[::2] + p[-1:]] for p in planned]

@@ -399,7 +399,7 @@ class Agv(AgvInstantActions, AgvJournal):
                 if self.recorder is not None:
                     self.recorder.detach()
         self.runner, self.leg = None, None
-        self.heading = runner.ctx.heading
+        self.heading = runner.ctx.memory.heading
         near = None if ok else self._nearest_node()
         if near is not None:  # stopped at a node (cancelled, failed): the heading it stands with there
             self.heading = self._axis_heading(near)
@@ -498,7 +498,7 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.vehicle.set_safety_field_set("narrow")
                 self._gate(pre)
             elif state == "return_to_roadmap":
-                ctx = runner.ctx
+                ctx = runner.ctx.memory
                 if ctx.node_before and ctx.pre_node and self.roadmap.node(ctx.pre_node).temporary:
                     if not self.orders.can_enter(ctx.node_before):
                         self._gate(ctx.node_before)
@@ -511,7 +511,7 @@ class Agv(AgvInstantActions, AgvJournal):
             elif state == "reverse_out":
                 self.orders.arrive(pre)
             elif state == "return_to_roadmap":
-                self.orders.arrive(runner.ctx.at_node)
+                self.orders.arrive(runner.ctx.memory.at_node)
             self.changed()
 
     def _handled(self, a: Action, kind: str) -> None:
