@@ -18,6 +18,7 @@ import yaml
 from test_runner_failsafe import VEHICLE, FakeVehicle
 
 from palletpilot.control.mpc import MpcFollower
+from palletpilot.executor.adapters.mcap.recording import Recorder
 from palletpilot.executor.apps import compose
 from palletpilot.executor.core.behaviour import (
     JOURNALLED,
@@ -161,3 +162,27 @@ def test_the_injected_dependencies_are_frozen(tmp_path: Path) -> None:
     runner = compose.build_runner(_parts(tmp_path), compose.Outputs(), Settings())
     with pytest.raises(dataclasses.FrozenInstanceError):
         runner.ctx.planner = Planner(runner.ctx.roadmap)  # type: ignore[misc]
+
+
+def test_a_recorder_follows_only_a_runner_built_with_its_observer(tmp_path: Path) -> None:
+    recorder = Recorder(tmp_path / "run.mcap", port=None, wall=False)
+    try:
+        parts = _parts(tmp_path)
+        bare = Runner(
+            parts.mission,
+            parts.roadmap,
+            recorder.wrap_vehicle(parts.vehicle),
+            None,
+            parts.grab,
+            parts.clock,
+            VEHICLE,
+            parts.forks,
+            "charger",
+        )
+        with pytest.raises(ValueError, match="among its observers"):
+            recorder.attach(bare)
+        assert recorder.on_event not in bare.listeners  # nothing subscribed into it afterwards
+        runner = compose.build_runner(_parts(tmp_path), compose.Outputs(recorder=recorder), Settings())
+        assert runner.listeners[-1] == recorder.on_event and recorder.runner is runner
+    finally:
+        recorder.close()
