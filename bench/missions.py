@@ -133,8 +133,7 @@ def _one(job: tuple[dict, str]) -> dict:
 
     spec, mode = job
     adapt = mode not in ("no_adapt", "paper")
-    settings = Settings()
-    settings.paper_baseline = mode == "paper"
+    settings = Settings(paper_baseline=mode == "paper")
     labels = "truth" if mode == "adaptive_truth" else mode.partition(":")[2] or "fused"
     sc = Scenario.model_validate(spec["scenario"])
     sc.folder = MISSIONS

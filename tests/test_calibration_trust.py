@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from palletpilot.executor.apps.app import run_simulated
-from palletpilot.executor.core.behaviour import Settings
+from palletpilot.executor.core.behaviour import Settings, TaskMemory
 from palletpilot.executor.core.calibration_trust import LAST_GOOD_SOURCE, calibration_for_checks
 from palletpilot.executor.core.errors import CALIBRATION_FAILED, TaskFailed
 from palletpilot.executor.core.jobs import Jobs
@@ -172,15 +172,15 @@ def calibrate_in_pickup(ctx: SimpleNamespace) -> Calibration:
     state.start(ctx)
     for _ in range(20):
         if state.update(ctx) == "done":
-            return ctx.calibration
+            return ctx.memory.calibration
         ctx.t += 0.05
     raise AssertionError("CalibrateCamera did not finish")
 
 
 def context(frame, perception: FakePerception) -> SimpleNamespace:
-    ctx = SimpleNamespace(t=0.0, events=[], record={}, calibration=None, trusted_calibration=None)
+    ctx = SimpleNamespace(t=0.0, events=[], memory=TaskMemory("floor_b2_pre", 0.0, last_motion_s=-1.0))
     ctx.vehicle = SimpleNamespace(speed=0.0, stop=lambda: None)
-    ctx.perception, ctx.settings, ctx.last_motion_s, ctx.at_node = perception, Settings(), -1.0, "floor_b2_pre"
+    ctx.perception, ctx.settings = perception, Settings()
     ctx.forks, ctx.pallet_type = load_forks(MISSIONS / "forks.yaml"), PalletType.eur()
     ctx.clock_now = lambda: ctx.t
     ctx.jobs = Jobs(deterministic=True, now=ctx.clock_now)
@@ -203,7 +203,7 @@ def test_the_pickup_refuses_an_untrusted_x_without_a_trusted_calibration(frame_a
     assert info.value.reason == CALIBRATION_FAILED
     assert "not trusted in x" in str(info.value) and "no earlier trusted calibration" in str(info.value)
     assert "Measure the blade profile" in str(info.value)  # the warning's text: what to do
-    assert ctx.calibration is None and ctx.record["calibration_refused"]["axes"] == ["x"]
+    assert ctx.memory.calibration is None and ctx.memory.record["calibration_refused"]["axes"] == ["x"]
     # It looked again first (a few noisy pixels past the tips may trip the check once); a taper trips it again.
     assert [name for name, _ in ctx.events] == ["calibration_untrusted", "calibration_refused"]
 
@@ -214,7 +214,7 @@ def test_the_pickup_takes_another_look_when_the_tips_are_untrusted_once(frame_an
     ctx = context(frame, FakePerception(untrusted_like(truth), trusted))
     assert calibrate_in_pickup(ctx) is trusted
     assert [name for name, _ in ctx.events][:2] == ["calibration_untrusted", "calibrated"]
-    assert ctx.trusted_calibration is not None and ctx.trusted_calibration[0] is trusted
+    assert ctx.memory.trusted_calibration is not None and ctx.memory.trusted_calibration[0] is trusted
 
 
 @pytest.mark.parametrize("from_this_run", [False, True])
@@ -225,8 +225,8 @@ def test_the_pickup_keeps_x_from_a_trusted_calibration_of_the_unmoved_mount(fram
     new = untrusted_like(truth)
     if from_this_run:  # an earlier pickup of this run calibrated with every axis trusted
         ctx = context(frame, FakePerception(trusted, new))
-        assert calibrate_in_pickup(ctx) is trusted and ctx.trusted_calibration[0] is trusted
-        source = ctx.trusted_calibration[1]
+        assert calibrate_in_pickup(ctx) is trusted and ctx.memory.trusted_calibration[0] is trusted
+        source = ctx.memory.trusted_calibration[1]
         assert "this run's calibration" in source
     else:  # the service's last good calibration (as a calibration file loaded at start seeds it)
         ctx = context(frame, FakePerception(new, last_good=trusted))
@@ -241,9 +241,9 @@ def test_the_pickup_keeps_x_from_a_trusted_calibration_of_the_unmoved_mount(fram
         and kept["source"] == source
         and kept["x"]["measured_m"] == pytest.approx(truth.t[0] + 0.08, abs=1e-6)
     )
-    assert ctx.record["calibration_axis_kept"] == kept
-    assert ctx.record["calibrations"][-1]["untrusted_axes"] == []
-    assert ctx.trusted_calibration == (trusted, source)  # a combined calibration never becomes the reference
+    assert ctx.memory.record["calibration_axis_kept"] == kept
+    assert ctx.memory.record["calibrations"][-1]["untrusted_axes"] == []
+    assert ctx.memory.trusted_calibration == (trusted, source)  # a combined calibration never becomes the reference
 
 
 def test_a_paper_calibration_is_no_reference_for_x(frame_and_truth):
@@ -263,7 +263,7 @@ def test_the_pickup_refuses_when_the_mount_moved_since_the_trusted_calibration(f
         calibrate_in_pickup(ctx)
     assert info.value.reason == CALIBRATION_FAILED and "the mount has moved" in str(info.value)
     assert "pitch differs by -0.5 deg (tolerance 0.3 deg)" in str(info.value)
-    assert ctx.record["calibration_refused"]["source"] == LAST_GOOD_SOURCE
+    assert ctx.memory.record["calibration_refused"]["source"] == LAST_GOOD_SOURCE
 
 
 def test_checks_outside_the_pickup_never_take_an_untrusted_axis_either(frame_and_truth):
@@ -273,14 +273,14 @@ def test_checks_outside_the_pickup_never_take_an_untrusted_axis_either(frame_and
     knocked = untrusted_like(pose(truth.t, np.degrees(truth.to_xyz_rpy()[1]) + np.array([0.0, 0.5, 0.0])))
     ctx = context(frame, FakePerception(last_good=untrusted))
     assert calibration_for_checks(ctx) is None  # nothing trusted: no camera check
-    ctx.trusted_calibration = (trusted, "commissioning")
+    ctx.memory.trusted_calibration = (trusted, "commissioning")
     kept = calibration_for_checks(ctx)
     assert kept is not None and kept.trusted and kept.T_forklift_camera.t == pytest.approx(truth.t)
     ctx.perception.last_good = knocked
     assert calibration_for_checks(ctx) is None  # the mount moved since
     ctx.perception.last_good = trusted
     assert calibration_for_checks(ctx) is trusted
-    ctx.calibration = kept
+    ctx.memory.calibration = kept
     assert calibration_for_checks(ctx) is kept  # the task's own
 
 

@@ -39,8 +39,7 @@ def _scenario(start: str, pallets: list[dict], clutter: list[dict] | None = None
 def _run(tmp_path: Path, tasks: list[dict], sc: Scenario):
     path = tmp_path / "mission.yaml"
     path.write_text(yaml.safe_dump({"name": "t", "map": str(MISSIONS / "warehouse.yaml"), "tasks": tasks}))
-    settings = Settings()
-    settings.blocked_wait_s = 5.0
+    settings = Settings(blocked_wait_s=5.0)
     return run_simulated(path, scenario=sc, report_dir=tmp_path / "report", settings=settings)
 
 

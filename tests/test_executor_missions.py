@@ -170,7 +170,7 @@ def test_pickup_then_delivery(tmp_path):
     drop = r.runner.ctx.roadmap.node("drop").pose
     assert not pallet.carried and pallet.T_world_pallet.t[2] == 0.0
     assert pallet.T_world_pallet.to_se2().distance_to(drop) < 0.2  # set down at the drop node
-    assert r.runner.ctx.at_node == "drop_pre"
+    assert r.runner.ctx.memory.at_node == "drop_pre"
     assert abs(r.sim.fork_height - r.sim.vehicle.mast.travel_height_empty) < 0.005  # empty forks back down
     # The report and every event line are strict JSON (RFC 8259): no NaN / Infinity (beam ranges are null).
     for text in [(tmp_path / "report" / "report.json").read_text(), *open(tmp_path / "report" / "events.jsonl")]:

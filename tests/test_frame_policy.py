@@ -104,9 +104,7 @@ def test_the_pickup_takes_rounds_of_frames_while_the_yaw_is_uncertain(tmp_path: 
         )
     )
     sigma_deg = 0.01
-    settings = Settings()
-    settings.estimate_yaw_sigma_deg = sigma_deg
-    settings.max_frames_per_estimate = 7
+    settings = Settings(estimate_yaw_sigma_deg=sigma_deg, max_frames_per_estimate=7)
     r = run_simulated(mission, scenario=sc, report_dir=tmp_path / "report", settings=settings)
     assert r.success, r.runner.results[0].message
     events = [json.loads(line) for line in (tmp_path / "report" / "events.jsonl").read_text().splitlines()]

@@ -6,6 +6,7 @@ command driving a truck reaches."""
 from __future__ import annotations
 
 import ast
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -48,11 +49,9 @@ def test_no_adapt_looks_then_takes_an_aligned_pallet(tmp_path: Path) -> None:
 
 
 def test_only_the_bench_reaches_the_paper_baseline() -> None:
-    settings = Settings()
-    settings.adapt = False
+    settings = Settings(adapt=False)
     assert pickup_kind(settings) == "pickup_no_adapt"
-    settings.paper_baseline = True
-    assert pickup_kind(settings) == "pickup_paper"
+    assert pickup_kind(dataclasses.replace(settings, paper_baseline=True)) == "pickup_paper"
     # No command that drives a truck (run, robot, agv: executor/) sets the bench's switch.
     setters = []
     for path in sorted((REPO / "executor").rglob("*.py")):

@@ -14,6 +14,7 @@ import yaml
 
 from palletpilot.bench.pallet import FrameSpec, render, render_frames
 from palletpilot.executor.apps.cli_pallet_measure import add_parsers
+from palletpilot.executor.core.behaviour import TaskMemory
 from palletpilot.executor.core.entry import CheckVolume, entry_pocket_fit, pocket_fit_problems
 from palletpilot.executor.core.errors import TaskFailed
 from palletpilot.geometry import SE2, SE3
@@ -160,8 +161,12 @@ def test_the_entry_check_refuses_before_entering_with_the_figures() -> None:
         vehicle=vehicle,
         forks=forks,
         pallet_type=pallet_type(FAMILY),
-        estimate=measured((0.200, 0.200), (0.1725, -0.1725), 0.100),
-        estimated_pallet=SE3.from_translation(3.0, 0.0, 0.0),
+        memory=TaskMemory(
+            "",
+            0.0,
+            estimate=measured((0.200, 0.200), (0.1725, -0.1725), 0.100),
+            estimated_pallet=SE3.from_translation(3.0, 0.0, 0.0),
+        ),
         settings=SimpleNamespace(fork_clearance=0.025, blocked_wait_s=5.0),
         now=lambda: 0.0,
         log=lambda name, **kw: events.append((name, kw)),

@@ -8,8 +8,9 @@ from types import SimpleNamespace
 
 import pytest
 
-from palletpilot.executor.core.behaviour import Settings
+from palletpilot.executor.core.behaviour import Settings, TaskMemory
 from palletpilot.executor.core.errors import TaskFailed
+from palletpilot.executor.core.mission import PickupTask
 from palletpilot.executor.core.pickup import _check_envelope, forks_outside_pockets
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
@@ -23,7 +24,7 @@ ROADMAP = load_map(MISSIONS / "warehouse.yaml")
 def ctx(node: str = "floor_b2") -> SimpleNamespace:
     return SimpleNamespace(
         roadmap=ROADMAP,
-        task=SimpleNamespace(node=node),
+        memory=TaskMemory("", 0.0, task=PickupTask(type="pickup", node=node)),
         settings=Settings(),
         forks=load_forks(MISSIONS / "forks.yaml"),
         pallet_type=PalletType.eur(),

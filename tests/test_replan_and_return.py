@@ -5,6 +5,7 @@ close before the pre-pallet node (so the curve to a misplaced pallet's new pre-p
 further back), and the example warehouse with two park nodes.
 """
 
+import dataclasses
 import itertools
 import json
 import shutil
@@ -140,7 +141,7 @@ def test_replan_joins_the_new_node_further_back_when_the_nearest_gives_no_curve(
     routes = [e["nodes"] for e in log if e["event"] == "route"]
     assert ["n1", "n2", "pre~1"] in routes
     last = task["temporary_nodes"][-1]
-    assert task["states"][-1]["state"] == "return_to_roadmap" and r.runner.ctx.at_node == last["joined_to"]
+    assert task["states"][-1]["state"] == "return_to_roadmap" and r.runner.ctx.memory.at_node == last["joined_to"]
     assert [last["pre_pallet"], last["joined_to"]] == routes[-1]
     assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
     # The journal holds what rebuilds the same temporary graph on a resume.
@@ -149,10 +150,10 @@ def test_replan_joins_the_new_node_further_back_when_the_nearest_gives_no_curve(
     assert saved["route_to_pre"] == ["s", "n2", "n1", "pre"]
     spec = TemporaryNodes.from_json(saved["temporary"][0])
     assert spec.before == "n2" and spec.via == ("n1", "n2")
-    ctx = r.runner.ctx
-    ctx.task, ctx.temporary, ctx.log = r.runner.mission.tasks[0], [], lambda *a, **k: None
+    ctx = dataclasses.replace(r.runner.ctx, log=lambda *a, **k: None)
+    ctx.memory.task, ctx.memory.temporary = r.runner.mission.tasks[0], []
     with ctx.roadmap.overlay() as ov:
-        ctx.overlay = ov
+        ctx.memory.overlay = ov
         rebuilt = add_temporary_nodes(ctx, spec)
         assert [e.name for e in rebuilt] == first["edges"]
         assert ov.node_ids == ["pre~1", "slot~1"]
@@ -179,7 +180,7 @@ def test_a_failed_pickup_returns_to_the_nearest_park_node_by_route(tmp_path):
     r = run(tmp_path, map_path, "b1", [], [{"type": "pickup", "node": "floor_b2"}], return_on_failure=True)
     result = r.runner.results[0]
     assert not r.success and result.reason == "pallet_not_found"
-    assert r.runner.ctx.at_node == "park_near"  # nearer by route than park_far, though further away
+    assert r.runner.ctx.memory.at_node == "park_near"  # nearer by route than park_far, though further away
     park = r.runner.ctx.roadmap.node("park_near").pose
     assert r.sim.true_pose.distance_to(park) < 0.15 and abs(r.sim.speed) < 1e-3 and r.sim.collisions == []
     fork = r.sim.fork_height
@@ -197,7 +198,7 @@ def test_a_failure_on_a_temporary_node_backs_out_through_the_temporary_edges_to_
         real = perception.estimate_pallet
 
         def estimate(frame, calibration, pose, expected=None, pallet=None, **kw):
-            if ctx.roadmap.node(ctx.pre_node).temporary:
+            if ctx.roadmap.node(ctx.memory.pre_node).temporary:
                 raise PerceptionError("test: nothing seen from the temporary node")
             return real(frame, calibration, pose, expected, pallet, **kw)
 
@@ -209,7 +210,7 @@ def test_a_failure_on_a_temporary_node_backs_out_through_the_temporary_edges_to_
     assert r.runner.results[0].reason == "pallet_not_found"
     (going,) = [e for e in events(tmp_path) if e["event"] == "returning_on_failure"]
     assert going["from_node"] == "pre~1" and going["route"] == ["pre~1", "n2", "park"]
-    assert r.runner.ctx.at_node == "park" and abs(r.sim.speed) < 1e-3 and r.sim.collisions == []
+    assert r.runner.ctx.memory.at_node == "park" and abs(r.sim.speed) < 1e-3 and r.sim.collisions == []
     assert r.sim.true_pose.distance_to(r.runner.ctx.roadmap.node("park").pose) < 0.15
     assert report_task(tmp_path)["return_on_failure"]["parking_node"] == "park"
     assert not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
@@ -224,7 +225,7 @@ def test_without_return_on_failure_the_truck_stays_where_the_task_failed(tmp_pat
     map_path = warehouse_with_parking(tmp_path)
     r = run(tmp_path, map_path, "b1", [], [{"type": "pickup", "node": "floor_b2", **task}], **mission)
     assert r.runner.results[0].reason == "pallet_not_found"
-    assert r.runner.ctx.at_node == "floor_b2_pre" and abs(r.sim.speed) < 1e-3
+    assert r.runner.ctx.memory.at_node == "floor_b2_pre" and abs(r.sim.speed) < 1e-3
     assert "return_on_failure" not in report_task(tmp_path)
     assert not {"returning_on_failure", "parked", "return_failed"} & {e["event"] for e in events(tmp_path)}
 
@@ -234,7 +235,7 @@ def test_no_parking_node_keeps_the_truck_stopped_and_says_why(tmp_path):
     map_path = tmp_path / "warehouse.yaml"
     shutil.copy(MISSIONS / "warehouse.yaml", map_path)  # no park node
     r = run(tmp_path, map_path, "b1", [], [{"type": "pickup", "node": "floor_b2", "return_on_failure": True}])
-    assert r.runner.results[0].reason == "pallet_not_found" and r.runner.ctx.at_node == "floor_b2_pre"
+    assert r.runner.results[0].reason == "pallet_not_found" and r.runner.ctx.memory.at_node == "floor_b2_pre"
     (failed,) = [e for e in events(tmp_path) if e["event"] == "return_failed"]
     assert "no node of a parking type (park)" in failed["reason"]
     assert report_task(tmp_path)["return_on_failure"]["parked"] is False

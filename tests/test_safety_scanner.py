@@ -42,9 +42,7 @@ def _run(tmp_path: Path, tasks: list[dict], sc: Scenario, settings: Settings | N
 
 
 def _short_wait() -> Settings:
-    s = Settings()
-    s.blocked_wait_s = 8.0
-    return s
+    return Settings(blocked_wait_s=8.0)
 
 
 def test_protective_field_grows_with_the_stopping_distance_and_faces_the_travel_direction():

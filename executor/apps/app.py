@@ -346,8 +346,7 @@ def _execute(
     point: ResumePoint | None,
 ) -> SimRun:
     """The simulator's `Parts` and the run's `Outputs`, wired by `compose`; run, then the report."""
-    settings = settings or Settings()
-    settings.adapt = options.adapt
+    settings = dataclasses.replace(settings or Settings(), adapt=options.adapt)
     wall = options.clock == "wall"
     injector = FaultInjector(scenario.faults, sim, realtime=wall)
     if point is not None:

@@ -1,5 +1,6 @@
 """The one way a run is put together, for every composition root: `run` and `test` (`executor.apps.app`,
-the simulator) and `robot` (`executor.apps.robot`, a truck over ROS 2).
+the simulator), `robot` (`executor.apps.robot`, a truck over ROS 2) and every leg of the VDA 5050 AGV
+(`executor.apps.vda5050.agv`: its order's planner, the heading the truck stands with).
 
 A backend brings its `Parts` (the vehicle, perception, the camera's `grab`, the clock, the path follower,
 its observers); the run's `Outputs` are its report folder's events file, its journal and its recorder.
@@ -38,14 +39,16 @@ if TYPE_CHECKING:
     from palletpilot.executor.adapters.stores.journal import Journal
     from palletpilot.perception.frames import FrameBundle
     from palletpilot.perception.specs import ForkGeometry
-    from palletpilot.roadmap import Roadmap
+    from palletpilot.roadmap import Planner, Roadmap
 
 
 @dataclass(frozen=True)
 class Parts:
     """What a backend brings to a run (SI units, world frame): the mission on its roadmap, the vehicle and
     its parameters, perception and the camera's `grab`, the clock, the forks, the node the truck starts
-    at, the path follower, and the backend's own observers (the simulator's fault injector)."""
+    at, the path follower, and the backend's own observers (the simulator's fault injector). `planner`:
+    how the tasks' routes are planned (None: the roadmap's own `Planner`); `start_heading`: the truck's
+    yaw at `start_node` (rad; None: the node's yaw)."""
 
     mission: Mission
     roadmap: Roadmap
@@ -58,6 +61,8 @@ class Parts:
     start_node: str
     follower: Follower
     observers: tuple[RunObserver, ...] = ()
+    planner: Planner | None = None
+    start_heading: float | None = None
 
 
 @dataclass(frozen=True)
@@ -106,12 +111,15 @@ def build_runner(
 ) -> Runner:
     """The runner of `parts`, recorded and journalled by `outputs`: the recorder wraps the vehicle and the
     camera and observes the events from the start; the journal gets the checkpoints (`world`: the
-    simulator's state with each). `resume`: continue from this checkpoint."""
+    simulator's state with each). `resume`: continue from this checkpoint. A recorder in a session (the
+    AGV's, one runner per leg) wrapped the vehicle and the camera once when the session started: the
+    parts bring those wrappers, and the recorder only observes this runner."""
     vehicle, grab, observers = parts.vehicle, parts.grab, list(parts.observers)
     recorder = outputs.recorder
     if recorder is not None:
-        vehicle = recorder.wrap_vehicle(vehicle)
-        grab = recorder.wrap_grab(grab)
+        if not recorder.in_session:
+            vehicle = recorder.wrap_vehicle(vehicle)
+            grab = recorder.wrap_grab(grab)
         observers.append(recorder.on_event)
     runner = Runner(
         parts.mission,
@@ -131,6 +139,8 @@ def build_runner(
         checkpointer=Checkpointer(outputs.book, world) if outputs.book is not None else None,
         resume=resume,
         listeners=observers,
+        planner=parts.planner,
+        start_heading=parts.start_heading,
     )
     if recorder is not None:
         recorder.attach(runner, sim)
@@ -191,7 +201,7 @@ def write_run_report(
             runner.results,
             runner.ctx.roadmap,
             runner.trajectory,
-            runner.ctx.planned_paths,
+            runner.ctx.memory.planned_paths,
             truth_pallets=truth_pallets,
             extra=extra,
             obstacles=obstacles,

@@ -19,6 +19,7 @@ which the Delivery's slot check uses when no Pickup calibrated on this run.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import hashlib
 import time
@@ -240,8 +241,7 @@ def _execute(
     """Build the runner on the connected truck (`compose`) and run the mission; write the report and
     `run.mcap`."""
     config, mission = inputs.config, inputs.mission
-    settings = settings or Settings()
-    settings.adapt = adapt
+    settings = dataclasses.replace(settings or Settings(), adapt=adapt)
     looks = adapt or config.camera.source != "none"  # --no-adapt looks with the camera where there is one
     perception = _perception(inputs, stack, looks, perception_mode, perception_connect, labels)
     folder = Path(report_dir).resolve() if report_dir is not None else None

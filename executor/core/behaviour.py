@@ -4,18 +4,26 @@ A behaviour works in the py_trees manner: `start(ctx)` once, `update(ctx)` every
 `None` (running) or a trigger name (`done`, `aligned`, `misaligned`, `fail`), `stop(ctx)` on leaving,
 `resume(ctx)` after a pause. Nothing in `update` may block: long work goes to `ctx.jobs`.
 
-Public API: `Settings`, `Context`, `Behaviour`, `TemporaryNodes`.
+`Context` splits in two: the run's injected dependencies (vehicle, perception, roadmap, planner, ...:
+frozen) and its `TaskMemory` (where the truck stands, the current task's scratch), which the journal
+stores at every checkpoint (`TaskMemory.to_json`, `executor.core.resume`).
+
+Public API: `Settings`, `Context`, `TaskMemory`, `JOURNALLED`, `NOT_JOURNALLED`, `Behaviour`,
+`TemporaryNodes`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
+
+import numpy as np
 
 from palletpilot.control.follower import Follower
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.core.jobs import Jobs
+from palletpilot.executor.core.mission import ChargeTask, DeliveryTask, MoveTask, PickupTask, Task
 from palletpilot.executor.ports import PerceptionService, VehiclePort
 from palletpilot.geometry import SE2, SE3
 from palletpilot.perception.calibration_io import Calibration, MountTolerance
@@ -78,8 +86,9 @@ class TemporaryNodes:
         )
 
 
+@dataclass(frozen=True)
 class Settings:
-    """Executor parameters (m, s, rad)."""
+    """Executor parameters (m, s, rad), immutable: a variant is `dataclasses.replace(settings, ...)`."""
 
     max_attempts: int = 3  # pallet estimates per pickup (the first one and the re-plans)
     # Alignment tolerances come from the fork and pocket geometry (`perception.alignment`), less these
@@ -132,9 +141,148 @@ class Settings:
     estimate_latency_s: float = 0.1
 
 
+T = TypeVar("T")
+
+JournalDoc = dict[str, Any]
+"""A checkpoint's plain JSON (the journal's `ctx`)."""
+
+JOURNALLED = (
+    "at_node",
+    "heading",
+    "attempts",
+    "pallet_node",
+    "pre_node",
+    "node_before",
+    "route_to_pre",
+    "calibration",
+    "estimated_pallet",
+    "temporary",
+)
+"""The `TaskMemory` fields a checkpoint stores (`TaskMemory.to_json`), in the journal's order."""
+
+NOT_JOURNALLED = {
+    "task": "the checkpoint's task index names it in the mission",
+    "overlay": "the task's overlay is reopened and the temporary nodes added again",
+    "last_route": "re-planned by the state that needs it",
+    "estimate": "a resumed state estimates again (the fused pose is journalled: estimated_pallet)",
+    "record": "journalled with the task's result (the checkpoint's `current`)",
+    "last_motion_s": "the checkpoint's time: nothing moved since",
+    "trusted_calibration": "a resumed run trusts anew (or perception's last good calibration seeds it)",
+    "planned_paths": "journalled as the checkpoint's `planned`, each path once",
+}
+"""Why each other `TaskMemory` field is not in a checkpoint's `ctx` (rebuilt or stored elsewhere)."""
+
+
+def _se3_json(T: SE3 | None) -> list[list[float]] | None:
+    return None if T is None else np.asarray(T.matrix).tolist()
+
+
+def _se3(doc: Any) -> SE3 | None:
+    return None if doc is None else SE3.from_matrix(np.asarray(doc, dtype=float))
+
+
 @dataclass
+class TaskMemory:
+    """What the run and its current task remember between ticks, the part of a run a checkpoint stores
+    (`to_json`, `JOURNALLED`; the rest is rebuilt on a resume: `NOT_JOURNALLED`). World frame, m and rad.
+
+    Run-scoped: where the truck stands on the roadmap (`at_node`, `heading`), when it last moved, the
+    trusted calibration, the paths planned. Task-scoped: the rest, reset by `start_task`.
+    """
+
+    at_node: str
+    heading: float
+    last_motion_s: float = 0.0  # clock time (s) the vehicle or its forks last moved
+    # The newest calibration whose every axis was measured and trusted, and where it came from;
+    # `CalibrateCamera` keeps untrusted axes from it (never reset between tasks).
+    trusted_calibration: tuple[Calibration, str] | None = None
+    planned_paths: list[list[tuple[float, float]]] = field(default_factory=list)
+    # Task-scoped:
+    task: Task | None = None
+    overlay: Overlay | None = None
+    pallet_node: str = ""
+    pre_node: str = ""
+    node_before: str | None = None
+    last_route: Route | None = None
+    # The nodes of the route that reached the task's own pre-pallet node (ending there): re-plans back
+    # along it.
+    route_to_pre: list[str] = field(default_factory=list)
+    attempts: int = 0
+    calibration: Calibration | None = None
+    estimate: PalletEstimate | None = None
+    estimated_pallet: SE3 | None = None  # T_world_pallet of the last fused estimate (the re-plan's input)
+    temporary: list[TemporaryNodes] = field(default_factory=list)
+    record: dict[str, Any] = field(default_factory=dict)
+
+    def start_task(self, task: Task) -> None:
+        """A new task: no attempts, calibration, estimate or temporary nodes yet (the rest carries over)."""
+        self.task, self.attempts, self.calibration, self.estimate, self.estimated_pallet = task, 0, None, None, None
+        self.temporary, self.route_to_pre = [], []
+
+    def task_of(self, kind: type[T]) -> T:
+        """The current task, a `kind`; `TypeError` for any other (a bug: an internal error)."""
+        task = self.task
+        if not isinstance(task, kind):
+            raise TypeError(f"the current task ({type(task).__name__}) is no {kind.__name__}")
+        return task
+
+    def node_task(self) -> PickupTask | DeliveryTask | MoveTask | ChargeTask:
+        """The current task, one that goes to a node; `TypeError` for any other (a bug: an internal error)."""
+        task = self.task
+        if not isinstance(task, PickupTask | DeliveryTask | MoveTask | ChargeTask):
+            raise TypeError(f"the current task ({type(task).__name__}) goes to no node")
+        return task
+
+    def load_task(self) -> PickupTask | DeliveryTask:
+        """The current task, a Pickup or a Delivery; `TypeError` for any other (a bug: an internal error)."""
+        task = self.task
+        if not isinstance(task, PickupTask | DeliveryTask):
+            raise TypeError(f"the current task ({type(task).__name__}) handles no load")
+        return task
+
+    def to_json(self) -> JournalDoc:
+        """The `JOURNALLED` fields as plain JSON (poses as 4x4 matrices, temporary nodes as their records)."""
+        cal = self.calibration
+        return {
+            "at_node": self.at_node,
+            "heading": self.heading,
+            "attempts": self.attempts,
+            "pallet_node": self.pallet_node,
+            "pre_node": self.pre_node,
+            "node_before": self.node_before,
+            "route_to_pre": self.route_to_pre,
+            "calibration": None
+            if cal is None
+            else {"T": _se3_json(cal.T_forklift_camera), "method": cal.method, "quality": cal.quality},
+            "estimated_pallet": _se3_json(self.estimated_pallet),
+            "temporary": [t.to_json() for t in self.temporary],
+        }
+
+    def restore_position(self, doc: JournalDoc) -> None:
+        """Where the truck stood at a checkpoint (`to_json`'s `at_node`, `heading`)."""
+        self.at_node, self.heading = str(doc["at_node"]), float(doc["heading"])
+
+    def restore_task(self, doc: JournalDoc) -> list[TemporaryNodes]:
+        """The task-scoped fields of a checkpoint (`to_json`) but the temporary nodes, which are returned
+        for the caller to add back to the roadmap's overlay (`temporary` is left empty); no estimate."""
+        self.attempts = int(doc["attempts"])
+        self.pallet_node, self.pre_node = str(doc["pallet_node"]), str(doc["pre_node"])
+        self.node_before = doc["node_before"]
+        self.route_to_pre = [str(n) for n in doc.get("route_to_pre", [])]
+        cal = doc["calibration"]
+        self.calibration = (
+            None if cal is None else Calibration(_se3(cal["T"]), str(cal["method"]), dict(cal["quality"]))  # type: ignore[arg-type]
+        )
+        self.estimated_pallet = _se3(doc["estimated_pallet"])
+        self.estimate = None
+        self.temporary = []
+        return [TemporaryNodes.from_json(spec) for spec in doc["temporary"]]
+
+
+@dataclass(frozen=True)
 class Context:
-    """Everything a behaviour may use, and what it records for the report."""
+    """What a behaviour is given: the run's injected dependencies (frozen; the runner gives each task its
+    `pallet_type` with `dataclasses.replace`) and `memory`, what the run and the task remember."""
 
     vehicle: VehiclePort
     perception: PerceptionService | None
@@ -143,37 +291,15 @@ class Context:
     follower: Follower
     params: VehicleParams
     forks: ForkGeometry
-    pallet_type: PalletType
+    pallet_type: PalletType  # the current task's pallet (the mission's)
     settings: Settings
     now: Callable[[], float]  # task time (s): the clock less the time spent paused
     log: Callable[..., None]
-    at_node: str
-    heading: float
     jobs: Jobs
     clock_now: Callable[[], float]  # the clock (s), for frame stamps and perception jobs
     # A fresh camera frame (stamped, checked by the watchdog), or None when none is available this tick.
     frame: Callable[[], FrameBundle | None]
-    last_motion_s: float = 0.0  # clock time (s) the vehicle or its forks last moved
-    # Task-scoped (reset per task):
-    task: Any = None
-    overlay: Overlay | None = None
-    pallet_node: str = ""
-    pre_node: str = ""
-    node_before: str | None = None
-    last_route: Route | None = None
-    # The nodes of the route that reached the task's own pre-pallet node (ending there): re-plans back
-    # along it (journalled).
-    route_to_pre: list[str] = field(default_factory=list)
-    attempts: int = 0
-    calibration: Calibration | None = None
-    # Run-scoped: the newest calibration whose every axis was measured and trusted, and where it came
-    # from; `CalibrateCamera` keeps untrusted axes from it (never reset between tasks).
-    trusted_calibration: tuple[Calibration, str] | None = None
-    estimate: PalletEstimate | None = None
-    estimated_pallet: SE3 | None = None  # T_world_pallet of the last fused estimate (the re-plan's input)
-    temporary: list[TemporaryNodes] = field(default_factory=list)
-    record: dict[str, Any] = field(default_factory=dict)
-    planned_paths: list[list[tuple[float, float]]] = field(default_factory=list)
+    memory: TaskMemory
 
 
 class Behaviour:

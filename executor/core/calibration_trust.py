@@ -6,7 +6,7 @@ be 50-150 mm off, and the forks would stop that much short of or past where the 
 (`trusted_axes_only`):
 
 - every axis trusted: the calibration is used as it is, and becomes the truck's trusted calibration
-  (`Context.trusted_calibration`, kept for the whole run);
+  (`TaskMemory.trusted_calibration`, kept for the whole run);
 - untrusted axes, and a trusted calibration of this truck is held (made earlier in this run, or the
   perception service's last good one before this calibration: a calibration file loaded at start seeds
   it; one whose axes were themselves kept from another never counts): when every axis trusted in both
@@ -40,12 +40,12 @@ LAST_GOOD_SOURCE = "the perception service's last good calibration (a file loade
 
 
 def note_trusted(ctx: Context, calibration: Calibration | None, source: str) -> None:
-    """Hold `calibration` as the truck's newest trusted one (`Context.trusted_calibration`) when every axis
+    """Hold `calibration` as the truck's newest trusted one (`TaskMemory.trusted_calibration`) when every axis
     of it was measured and trusted (none kept from another); otherwise the one held stays."""
     if calibration is None or calibration.untrusted_axes or calibration.quality.get("kept_axes"):
         return
-    if ctx.trusted_calibration is None or ctx.trusted_calibration[0] is not calibration:
-        ctx.trusted_calibration = (calibration, source)
+    if ctx.memory.trusted_calibration is None or ctx.memory.trusted_calibration[0] is not calibration:
+        ctx.memory.trusted_calibration = (calibration, source)
 
 
 def trusted_axes_only(ctx: Context, calibration: Calibration) -> Calibration:
@@ -53,10 +53,12 @@ def trusted_axes_only(ctx: Context, calibration: Calibration) -> Calibration:
     every axis is trusted, else combined with the trusted one held; `TaskFailed(calibration_failed)` when
     neither can be."""
     if not calibration.untrusted_axes:
-        note_trusted(ctx, calibration, f"this run's calibration at node '{ctx.at_node}' ({ctx.clock_now():.1f} s)")
+        note_trusted(
+            ctx, calibration, f"this run's calibration at node '{ctx.memory.at_node}' ({ctx.clock_now():.1f} s)"
+        )
         return calibration
     axes = sorted(a.value for a in calibration.untrusted_axes)
-    held = ctx.trusted_calibration
+    held = ctx.memory.trusted_calibration
     if held is None:
         _refuse(ctx, calibration, axes, "there is no earlier trusted calibration of this truck to keep them from", None)
     reference, source = held
@@ -69,16 +71,16 @@ def trusted_axes_only(ctx: Context, calibration: Calibration) -> Calibration:
         _refuse(ctx, calibration, axes, why, source)
     combined = keep_axes(calibration, reference, source)
     kept = {"axes": axes, "source": source, **combined.quality["kept_axes"]}
-    ctx.record["calibration_axis_kept"] = kept
+    ctx.memory.record["calibration_axis_kept"] = kept
     ctx.log("calibration_axis_kept", **kept)
     return combined
 
 
 def _refuse(ctx: Context, calibration: Calibration, axes: list[str], why: str, source: str | None) -> NoReturn:
     """Record and log the refusal, then fail the task with `calibration_failed` and the warnings' text."""
-    ctx.record.setdefault("calibrations", []).append(calibration.to_json())
+    ctx.memory.record.setdefault("calibrations", []).append(calibration.to_json())
     refused = {"axes": axes, "why": why, "source": source, "warnings": list(calibration.warnings)}
-    ctx.record["calibration_refused"] = refused
+    ctx.memory.record["calibration_refused"] = refused
     ctx.log("calibration_refused", **refused)
     said = "; ".join(calibration.warnings) or "no warning given"
     raise TaskFailed(
@@ -89,17 +91,17 @@ def _refuse(ctx: Context, calibration: Calibration, axes: list[str], why: str, s
 
 
 def calibration_for_checks(ctx: Context) -> Calibration | None:
-    """The calibration a camera check may use when the task made none (`ctx.calibration` is None, as in a
+    """The calibration a camera check may use when the task made none (`ctx.memory.calibration` is None, as in a
     Delivery): the perception service's last good one when every axis is trusted; when it has untrusted
     axes, those kept from the truck's trusted calibration if the mount has not moved (`trusted_axes_only`'s
     rule, nothing logged); the trusted calibration held when the service has none; else None (no camera
     check: the caller relies on its other sensors)."""
-    if ctx.calibration is not None:
-        return ctx.calibration
+    if ctx.memory.calibration is not None:
+        return ctx.memory.calibration
     last = ctx.perception.last_good if ctx.perception is not None else None
     if last is not None and not last.untrusted_axes:
         return last
-    held = ctx.trusted_calibration
+    held = ctx.memory.trusted_calibration
     if held is None:
         return None
     if last is None:

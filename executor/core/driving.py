@@ -12,6 +12,7 @@ from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.executor.core.behaviour import Behaviour, Context
 from palletpilot.executor.core.errors import CONTROLLER_ERROR, NO_ROUTE, Reason, TaskFailed
+from palletpilot.executor.core.mission import ChargeTask
 from palletpilot.roadmap import Direction, NodeType, RoadmapError, reference_path
 from palletpilot.roadmap.planner import Route
 
@@ -62,7 +63,9 @@ class FollowRoute(Behaviour):
             self.check(ctx)
         goal = self.target(ctx)
         try:
-            self.route = self.via(ctx) if self.via else ctx.planner.plan(ctx.at_node, goal, start_yaw=ctx.heading)
+            self.route = (
+                self.via(ctx) if self.via else ctx.planner.plan(ctx.memory.at_node, goal, start_yaw=ctx.memory.heading)
+            )
         except RoadmapError as exc:
             raise TaskFailed(NO_ROUTE, str(exc)) from None
         if not self.route.edges:
@@ -71,7 +74,7 @@ class FollowRoute(Behaviour):
         ctx.vehicle.set_safety_field_set(field_set)
         raised = ctx.vehicle.fork_height > travel_height(ctx) + TRAVEL_HEIGHT_TOLERANCE
         path = reference_path(self.route, speed_cap=ctx.params.creep_speed if raised else None)
-        ctx.planned_paths.append(
+        ctx.memory.planned_paths.append(
             [(float(x), float(y)) for x, y in zip(path.stacked("x"), path.stacked("y"), strict=True)]
         )
         self.timeout_s = 30.0 + 4.0 * path.length / 0.5
@@ -91,8 +94,8 @@ class FollowRoute(Behaviour):
         if cmd.status is FollowerStatus.SUCCEEDED:
             v.stop()
             last = self.route.edges[-1]
-            ctx.at_node, ctx.heading = self.route.nodes[-1], last.yaw_end
-            ctx.last_route = self.route
+            ctx.memory.at_node, ctx.memory.heading = self.route.nodes[-1], last.yaw_end
+            ctx.memory.last_route = self.route
             return "done"
         if cmd.status is FollowerStatus.FAILED:
             raise TaskFailed(CONTROLLER_ERROR, "the path follower failed")
@@ -150,13 +153,16 @@ class ReturnToRoadmap(FollowRoute):
     """After a pickup at temporary nodes, back out to the node before them, so they can be removed."""
 
     def __init__(self) -> None:
-        super().__init__(lambda ctx: ctx.at_node, via=self._route)
+        super().__init__(lambda ctx: ctx.memory.at_node, via=self._route)
 
     @staticmethod
     def _route(ctx: Context) -> Route:
-        if not ctx.roadmap.node(ctx.pre_node).temporary or ctx.node_before is None:
-            return Route([ctx.pre_node], [])
-        return Route([ctx.pre_node, ctx.node_before], [ctx.roadmap.edge(ctx.pre_node, ctx.node_before)])
+        if not ctx.roadmap.node(ctx.memory.pre_node).temporary or ctx.memory.node_before is None:
+            return Route([ctx.memory.pre_node], [])
+        return Route(
+            [ctx.memory.pre_node, ctx.memory.node_before],
+            [ctx.roadmap.edge(ctx.memory.pre_node, ctx.memory.node_before)],
+        )
 
 
 class Charge(Behaviour):
@@ -164,17 +170,19 @@ class Charge(Behaviour):
 
     def start(self, ctx: Context) -> None:
         ctx.vehicle.stop()
-        self.until = ctx.now() + 60.0 * (ctx.task.minutes or 0.0)
-        self.timeout_s = 60.0 * (ctx.task.minutes or 240.0) + 10.0
-        if ctx.task.until_level is not None and getattr(ctx.vehicle, "battery_level", None) is None:
+        task = ctx.memory.task_of(ChargeTask)
+        self.until = ctx.now() + 60.0 * (task.minutes or 0.0)
+        self.timeout_s = 60.0 * (task.minutes or 240.0) + 10.0
+        if task.until_level is not None and getattr(ctx.vehicle, "battery_level", None) is None:
             raise TaskFailed(
                 Reason.NO_BATTERY_READING, "charging until a level needs a battery reading this vehicle lacks"
             )
 
     def update(self, ctx: Context) -> str | None:
-        if ctx.task.until_level is not None:
+        until_level = ctx.memory.task_of(ChargeTask).until_level
+        if until_level is not None:
             level = getattr(ctx.vehicle, "battery_level", None)
             if level is None:
                 raise TaskFailed(Reason.NO_BATTERY_READING, "the battery reading was lost while charging")
-            return "done" if level >= ctx.task.until_level else None
+            return "done" if level >= until_level else None
         return "done" if ctx.now() >= self.until else None

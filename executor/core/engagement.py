@@ -45,10 +45,10 @@ def _geometry_tolerances(ctx: Context) -> AlignmentTolerances:
 
 def _at_rack_limit(ctx: Context) -> bool:
     """True when the current pallet node is a re-plan's node held back at the rack's overrun limit."""
-    original = ctx.roadmap.node(ctx.task.node)
-    if original.height <= 0.0 or not ctx.pallet_node or ctx.pallet_node == original.id:
+    original = ctx.roadmap.node(ctx.memory.node_task().node)
+    if original.height <= 0.0 or not ctx.memory.pallet_node or ctx.memory.pallet_node == original.id:
         return False
-    rel = original.pose.inv() @ ctx.roadmap.node(ctx.pallet_node).pose
+    rel = original.pose.inv() @ ctx.roadmap.node(ctx.memory.pallet_node).pose
     return rel.x >= ctx.settings.rack_overrun - _AT_LIMIT_M
 
 
@@ -71,7 +71,7 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     type's minimum engagement (with the longitudinal margin), naming how deep they could reach (mm).
     Records `engagement` in the task's report when the tips stop short of the back blocks.
     """
-    original = ctx.roadmap.node(ctx.task.node)
+    original = ctx.roadmap.node(ctx.memory.node_task().node)
     if original.height <= 0.0:
         return pallet_node_pose
     rel = original.pose.inv() @ pallet_node_pose
@@ -93,7 +93,7 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
         "margin_mm": round(margin * 1e3, 1),
         "pallet_length_mm": round(pallet.length * 1e3, 1),
     }
-    ctx.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
+    ctx.memory.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
     if reach - margin < need:
         raise TaskFailed(
             NO_FEASIBLE_APPROACH,

@@ -54,9 +54,9 @@ def entry_volume(ctx: Context) -> tuple[Volume, float] | None:
     """The pickup's entry volume in the forklift frame: from the fork tips to just short of the estimated
     entry face, the muted corridor wide, from the floor (or the fork bottoms) to the backrest's top;
     with the beams' far limit (m from the tips). None without an estimate or with no room to check."""
-    if ctx.estimated_pallet is None:
+    if ctx.memory.estimated_pallet is None:
         return None
-    return entry_volume_at(ctx, ctx.estimated_pallet.to_se2())
+    return entry_volume_at(ctx, ctx.memory.estimated_pallet.to_se2())
 
 
 def entry_volume_at(ctx: Context, T_world_pallet: SE2) -> tuple[Volume, float] | None:
@@ -76,8 +76,9 @@ def slot_volume(ctx: Context) -> tuple[Volume, float] | None:
     """A delivery's slot volume in the forklift frame: where the carried pallet will stand at the drop
     node and the way there, from just beyond the load's front, a pallet's width plus 5 cm either side,
     from just above the slot's floor (or beam top) to a load's height; with the beams' far limit."""
-    node = ctx.roadmap.node(ctx.pallet_node)
-    h = ctx.task.height if ctx.task.height is not None else node.height
+    node = ctx.roadmap.node(ctx.memory.pallet_node)
+    height = ctx.memory.load_task().height
+    h = height if height is not None else node.height
     T_fp: SE2 = ctx.vehicle.localization().inv() @ pallet_pose_at_node(node.pose, h).to_se2()
     pt = ctx.pallet_type
     far = T_fp.x + pt.length
@@ -142,10 +143,12 @@ def pocket_fit_problems(
 def entry_pocket_fit(ctx: Context) -> list[str]:
     """`pocket_fit_problems` for the Pickup's pallet from where the truck stands (none for an exact pallet
     type, whose pockets `SafetyCheck` checks, or without an estimate)."""
-    if ctx.pallet_type.family is None or ctx.estimate is None or ctx.estimated_pallet is None:
+    if ctx.pallet_type.family is None or ctx.memory.estimate is None or ctx.memory.estimated_pallet is None:
         return []
-    T_pallet_forklift = ctx.estimated_pallet.to_se2().inv() @ ctx.vehicle.localization()
-    return pocket_fit_problems(ctx.forks, ctx.pallet_type, ctx.estimate, T_pallet_forklift, ctx.settings.fork_clearance)
+    T_pallet_forklift = ctx.memory.estimated_pallet.to_se2().inv() @ ctx.vehicle.localization()
+    return pocket_fit_problems(
+        ctx.forks, ctx.pallet_type, ctx.memory.estimate, T_pallet_forklift, ctx.settings.fork_clearance
+    )
 
 
 class CheckVolume(Behaviour):

@@ -3,7 +3,7 @@
 Perception runs off the control loop (`ctx.jobs`): a state grabs its frame(s) while the truck stands,
 submits the work and polls for the result each tick, so its timeout fires and the vehicle keeps being
 commanded while perception runs. A result computed from a frame older than the vehicle's last motion
-(`ctx.last_motion_s`) is never used: the frame is grabbed again.
+(`ctx.memory.last_motion_s`) is never used: the frame is grabbed again.
 
 Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`,
 `approach_curve`, `approach_route`, `nodes_back`, `forks_outside_pockets` (the tolerances and the rack's
@@ -48,7 +48,7 @@ STANDING_SPEED = 1e-3
 
 def _stale(ctx: Context, frame_s: float) -> bool:
     """True when the vehicle or its forks moved after the frame was taken."""
-    return ctx.last_motion_s > frame_s
+    return ctx.memory.last_motion_s > frame_s
 
 
 def _frame_time(ctx: Context, frame: FrameBundle) -> float:
@@ -110,15 +110,15 @@ class CalibrateCamera(Behaviour):
             if len(self.errors) > ctx.settings.calibration_retries:
                 raise TaskFailed(CALIBRATION_FAILED, f"calibration failed: {self.errors[-1]}") from None
             return None
-        if calibration.untrusted_axes and ctx.trusted_calibration is None:
+        if calibration.untrusted_axes and ctx.memory.trusted_calibration is None:
             self.untrusted += 1
             if self.untrusted <= ctx.settings.calibration_retries:  # look again: noise, not a taper?
                 axes = sorted(a.value for a in calibration.untrusted_axes)
                 ctx.log("calibration_untrusted", attempt=self.untrusted, axes=axes, warnings=list(calibration.warnings))
                 return None
         calibration = trusted_axes_only(ctx, calibration)
-        ctx.calibration = calibration
-        ctx.record.setdefault("calibrations", []).append(calibration.to_json())
+        ctx.memory.calibration = calibration
+        ctx.memory.record.setdefault("calibrations", []).append(calibration.to_json())
         ctx.log("calibrated", xyz_m=calibration.to_json()["xyz_m"], quality=calibration.quality)
         if calibration.warnings:  # e.g. fork tips that cannot be trusted: the forks file needs the taper
             ctx.log("calibration_warning", warnings=list(calibration.warnings))
@@ -161,7 +161,7 @@ class EstimatePallet(Behaviour):
 
     def start(self, ctx: Context) -> None:
         ctx.vehicle.stop()
-        ctx.attempts += 1
+        ctx.memory.attempts += 1
         self.frames: list[tuple[FrameBundle, SE2, float]] = []
         self.estimates: list[PalletEstimate] = []  # of the frames estimated so far, over the rounds
         self.errors: list[tuple[str, str]] = []  # (reason, message) of the frames without an estimate
@@ -172,7 +172,7 @@ class EstimatePallet(Behaviour):
         self.timeout_s = EstimatePallet.timeout_s + ctx.settings.blocked_wait_s
 
     def update(self, ctx: Context) -> str | None:
-        perception, calibration = ctx.perception, ctx.calibration
+        perception, calibration = ctx.perception, ctx.memory.calibration
         assert perception is not None and calibration is not None
         if self.job is None:
             if abs(ctx.vehicle.speed) > STANDING_SPEED:
@@ -188,7 +188,7 @@ class EstimatePallet(Behaviour):
                 return None
             taken = self.frames[len(self.estimates) + len(self.errors) :]  # each estimated frame gave one of them
             expected, pallet = _expected_pallet(ctx), ctx.pallet_type
-            support = ctx.roadmap.node(ctx.pallet_node).height  # the floor, or the rack's beams
+            support = ctx.roadmap.node(ctx.memory.pallet_node).height  # the floor, or the rack's beams
 
             def estimate() -> tuple[list[PalletEstimate], list[tuple[str, str]]]:
                 estimates, errors = [], []
@@ -254,14 +254,14 @@ class EstimatePallet(Behaviour):
     def _blocked_in_front(self, ctx: Context) -> bool:
         """No pallet seen: is a person or an object standing in the entry volume before the pallet node
         (hiding it)? Then hold and look again every `RECHECK_S`; `path_blocked` after the wait."""
-        assert ctx.perception is not None and ctx.calibration is not None
-        node = ctx.roadmap.node(ctx.pallet_node)
+        assert ctx.perception is not None and ctx.memory.calibration is not None
+        node = ctx.roadmap.node(ctx.memory.pallet_node)
         spec = entry_volume_at(ctx, pallet_pose_at_node(node.pose, node.height).to_se2())
         frame = self.frames[-1][0] if self.frames else None
         self._restart(ctx)
         if spec is None or frame is None:
             return False
-        look = ctx.perception.check_volume(frame, ctx.calibration, spec[0])
+        look = ctx.perception.check_volume(frame, ctx.memory.calibration, spec[0])
         if not (look.occupied and look.seen >= MIN_SEEN):
             return False
         now = ctx.now()
@@ -279,15 +279,15 @@ class EstimatePallet(Behaviour):
 
     def _judge(self, ctx: Context, est: PalletEstimate) -> str:
         assert est.T_world_pallet is not None
-        _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.estimated_pallet)
-        ctx.estimate, ctx.estimated_pallet = est, est.T_world_pallet
-        node = ctx.roadmap.node(ctx.pallet_node)
+        _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.memory.estimated_pallet)
+        ctx.memory.estimate, ctx.memory.estimated_pallet = est, est.T_world_pallet
+        node = ctx.roadmap.node(ctx.memory.pallet_node)
         al = check_alignment(est.T_world_pallet, node, pickup_tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
         world = est.T_world_pallet.to_se2()
         entry: dict[str, Any] = {
             "problems": list(al.problems),
-            "attempt": ctx.attempts,
-            "against_node": ctx.pallet_node,
+            "attempt": ctx.memory.attempts,
+            "against_node": ctx.memory.pallet_node,
             "T_world_pallet": {
                 "x_m": round(world.x, 4),
                 "y_m": round(world.y, 4),
@@ -303,7 +303,7 @@ class EstimatePallet(Behaviour):
             ],
             "aligned": al.aligned,
         }
-        ctx.record.setdefault("estimates", []).append(entry)
+        ctx.memory.record.setdefault("estimates", []).append(entry)
         ctx.log("pallet_estimate", **entry)
         if al.aligned:
             return "aligned"
@@ -312,12 +312,12 @@ class EstimatePallet(Behaviour):
                 SAFETY_CHECK_FAILED,
                 "without adaptation (--no-adapt) the truck does not re-plan, and the forks do not fit the pallet "
                 f"as it stands ({entry['lateral_mm']} mm lateral, {entry['longitudinal_mm']} mm along, "
-                f"{entry['yaw_deg']} deg off node '{ctx.pallet_node}'): " + "; ".join(al.problems),
+                f"{entry['yaw_deg']} deg off node '{ctx.memory.pallet_node}'): " + "; ".join(al.problems),
             )
-        if ctx.attempts >= ctx.settings.max_attempts:
+        if ctx.memory.attempts >= ctx.settings.max_attempts:
             raise TaskFailed(
                 STILL_MISALIGNED,
-                f"pallet still off after {ctx.attempts} estimates: {entry['lateral_mm']} mm lateral, "
+                f"pallet still off after {ctx.memory.attempts} estimates: {entry['lateral_mm']} mm lateral, "
                 f"{entry['longitudinal_mm']} mm along, {entry['yaw_deg']} deg",
             )
         return "misaligned"
@@ -337,9 +337,9 @@ def _frame_policy(ctx: Context) -> FramePolicy:
 def _expected_pallet(ctx: Context) -> SE2:
     """Where this pickup's pallet is expected (`T_world_pallet`, world): the previous estimate, else the
     pallet node's nominal pose. Perception fits only the pallet instance standing there."""
-    if ctx.estimated_pallet is not None:
-        return ctx.estimated_pallet.to_se2()
-    node = ctx.roadmap.node(ctx.pallet_node)
+    if ctx.memory.estimated_pallet is not None:
+        return ctx.memory.estimated_pallet.to_se2()
+    node = ctx.roadmap.node(ctx.memory.pallet_node)
     return pallet_pose_at_node(node.pose, node.height).to_se2()
 
 
@@ -348,7 +348,7 @@ def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:
     node (`Settings.envelope_*`) and where the previous estimate of this pickup saw it; else
     `pallet_not_found` with the figures, and nothing is re-planned towards it."""
     st = ctx.settings
-    node = ctx.roadmap.node(ctx.task.node)
+    node = ctx.roadmap.node(ctx.memory.node_task().node)
     nominal = pallet_pose_at_node(node.pose, node.height).to_se2()
     off = nominal.inv() @ pallet
     yaw_deg = math.degrees(off.yaw)
@@ -384,9 +384,9 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
     `TaskFailed(no_feasible_approach)` when no drivable curve joins `spec.before` to the new pre-pallet
     node. Used by `Replan` and, with the journalled record, by a resume: the same record, the same graph.
     """
-    assert ctx.overlay is not None
-    original = ctx.roadmap.node(ctx.task.node)
-    original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+    assert ctx.memory.overlay is not None
+    original = ctx.roadmap.node(ctx.memory.node_task().node)
+    original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.memory.node_task().node))
     if curve is None:
         try:
             curve = approach_curve(ctx, spec)
@@ -394,7 +394,7 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
             raise TaskFailed(
                 NO_FEASIBLE_APPROACH, f"no feasible approach to the estimated pallet from '{spec.before}': {exc}"
             ) from None
-    ov = ctx.overlay
+    ov = ctx.memory.overlay
     ov.add_node(Node(spec.pre, NodeType.PRE_PALLET, spec.pre_pose))
     ov.add_node(Node(spec.pallet, NodeType.PALLET, spec.pallet_pose, height=original.height, pre_pallet=spec.pre))
     entry_speed = ctx.roadmap.edge(original_pre.id, original.id).speed_limit
@@ -404,7 +404,7 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
         ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed)),
         ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed)),
     ]
-    ctx.temporary.append(spec)
+    ctx.memory.temporary.append(spec)
     ctx.log(
         "replanned",
         pallet=spec.pallet,
@@ -422,14 +422,19 @@ def nodes_back(ctx: Context, start: str, heading: float, limit: int) -> list[tup
     heading there, the nodes it backs along from `start` to it, both included).
 
     A step back from a node goes to the node before it on the route that reached the task's pre-pallet
-    node (`ctx.route_to_pre`), else to a roadmap predecessor joined to it both ways; always along an edge
+    node (`ctx.memory.route_to_pre`), else to a roadmap predecessor joined to it both ways; always along an edge
     driven in reverse that leaves with the truck's heading, never to a pallet, drop or temporary node.
     """
     path: tuple[str, ...] = (start,)
     out = [(start, heading, path)]
     if start not in ctx.roadmap:
         return out
-    seen = {start, ctx.pre_node, ctx.task.node, ctx.roadmap.pre_pallet_of(ctx.task.node)}
+    seen = {
+        start,
+        ctx.memory.pre_node,
+        ctx.memory.node_task().node,
+        ctx.roadmap.pre_pallet_of(ctx.memory.node_task().node),
+    }
     here, yaw = start, heading
     while len(out) < limit:
         step = _step_back(ctx, here, yaw, seen)
@@ -443,7 +448,7 @@ def nodes_back(ctx: Context, start: str, heading: float, limit: int) -> list[tup
 
 def _step_back(ctx: Context, here: str, heading: float, seen: set[str]) -> Edge | None:
     """The reverse edge from `here` one node further back (see `nodes_back`), or None."""
-    graph, route = ctx.roadmap.graph, ctx.route_to_pre
+    graph, route = ctx.roadmap.graph, ctx.memory.route_to_pre
     on_route = [route[i - 1] for i in range(1, len(route)) if route[i] == here]
     for u in [*on_route, *(p for p in graph.predecessors(here) if p not in on_route)]:
         if u in seen or u not in graph or not (graph.has_edge(here, u) and graph.has_edge(u, here)):
@@ -461,12 +466,16 @@ def _step_back(ctx: Context, here: str, heading: float, seen: set[str]) -> Edge 
 def approach_route(ctx: Context) -> Route:
     """The approach to a re-plan's new pre-pallet node: from where the truck stands, back along the roadmap
     to the node the new node is joined to (when that lies further back), then forward along the new curve."""
-    spec = ctx.temporary[-1] if ctx.temporary and ctx.temporary[-1].pre == ctx.pre_node else None
+    spec = (
+        ctx.memory.temporary[-1]
+        if ctx.memory.temporary and ctx.memory.temporary[-1].pre == ctx.memory.pre_node
+        else None
+    )
     if spec is None:
-        nodes = [ctx.node_before or "", ctx.pre_node]
+        nodes = [ctx.memory.node_before or "", ctx.memory.pre_node]
     else:
         path = spec.back_path
-        first = path.index(ctx.at_node) if ctx.at_node in path else 0
+        first = path.index(ctx.memory.at_node) if ctx.memory.at_node in path else 0
         nodes = [*path[first:], spec.pre]
     return Route(nodes, [ctx.roadmap.edge(a, b) for a, b in itertools.pairwise(nodes)])
 
@@ -478,18 +487,18 @@ class Replan(Behaviour):
     to that node first (`approach_route`), and the return to the roadmap leaves through it."""
 
     def update(self, ctx: Context) -> str | None:
-        assert ctx.estimated_pallet is not None and ctx.overlay is not None
-        original = ctx.roadmap.node(ctx.task.node)
-        original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.task.node))
+        assert ctx.memory.estimated_pallet is not None and ctx.memory.overlay is not None
+        original = ctx.roadmap.node(ctx.memory.node_task().node)
+        original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.memory.node_task().node))
         standoff = original.pose.distance_to(original_pre.pose)
-        new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.estimated_pallet))
-        k = ctx.attempts
+        new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.memory.estimated_pallet))
+        k = ctx.memory.attempts
         limit = max(1, ctx.settings.replan_back_nodes)
         failures: list[str] = []
-        for before, heading, path in nodes_back(ctx, ctx.node_before or "", ctx.heading, limit):
+        for before, heading, path in nodes_back(ctx, ctx.memory.node_before or "", ctx.memory.heading, limit):
             spec = TemporaryNodes(
                 k=k,
-                pallet=f"{ctx.task.node}~{k}",
+                pallet=f"{ctx.memory.node_task().node}~{k}",
                 pre=f"{original_pre.id}~{k}",
                 pallet_pose=new_pallet_pose,
                 pre_pose=new_pallet_pose @ SE2(-standoff, 0.0, 0.0),
@@ -515,9 +524,9 @@ class Replan(Behaviour):
     @staticmethod
     def _add(ctx: Context, spec: TemporaryNodes, curve: Curve, tried: int) -> None:
         edges = add_temporary_nodes(ctx, spec, curve)
-        ctx.pallet_node, ctx.pre_node, ctx.node_before = spec.pallet, spec.pre, spec.before
+        ctx.memory.pallet_node, ctx.memory.pre_node, ctx.memory.node_before = spec.pallet, spec.pre, spec.before
         pose = spec.pallet_pose
-        ctx.record.setdefault("temporary_nodes", []).append(
+        ctx.memory.record.setdefault("temporary_nodes", []).append(
             {
                 "pallet": spec.pallet,
                 "pre_pallet": spec.pre,
@@ -537,8 +546,8 @@ class SafetyCheck(Behaviour):
     """Both fork-tip beams must pass through the pockets: never enter when one stops at the pallet."""
 
     def update(self, ctx: Context) -> str | None:
-        pre = ctx.roadmap.node(ctx.pre_node)
-        pallet = ctx.roadmap.node(ctx.pallet_node)
+        pre = ctx.roadmap.node(ctx.memory.pre_node)
+        pallet = ctx.roadmap.node(ctx.memory.pallet_node)
         face = pre.pose.distance_to(pallet.pose) + ENTRY_GAP_M - ctx.forks.tip_x  # tips to the entry face
         need = face + ctx.pallet_type.length - ctx.settings.beam_margin
         left, right = ctx.vehicle.proximity_ranges()
@@ -550,8 +559,8 @@ class SafetyCheck(Behaviour):
             )
         # A clear beam may also pass beside the pallet: with an estimate, each fork must lie in its pocket,
         # and at the pallet node the forks must carry the pallet type's minimum engagement (its balance).
-        if ctx.estimated_pallet is not None:
-            T_world_pallet = ctx.estimated_pallet.to_se2()
+        if ctx.memory.estimated_pallet is not None:
+            T_world_pallet = ctx.memory.estimated_pallet.to_se2()
             problems = forks_outside_pockets(ctx, T_world_pallet, ctx.vehicle.localization())
             at_node = T_world_pallet.inv() @ pallet.pose
             problems += engagement_problems(ctx.forks, ctx.pallet_type, at_node, margin=0.0)

@@ -1,13 +1,14 @@
 """Checkpoints of a running mission and resuming from them (with `executor.journal`).
 
 The runner writes a checkpoint at the start of every state and after every finished task: where the
-mission stands (task index, state), the task context (node, heading, attempts, the calibration, the
-last pallet estimate, the route that reached the pre-pallet node, the temporary nodes of re-plans with
-the node their curve joins and the nodes backed along to it), whether the forks carry a load, the finished
+mission stands (task index, state), the task memory (`TaskMemory.to_json`, under `ctx`: node, heading,
+attempts, the calibration, the last pallet estimate, the route that reached the pre-pallet node, the
+temporary nodes of re-plans with the node their curve joins and the nodes backed along to it; what it
+leaves out and why: `NOT_JOURNALLED`), whether the forks carry a load, the finished
 tasks' results, the trajectory and planned paths since the previous checkpoint, and, in the
 simulator, the whole world (`Simulator.snapshot`). Each is committed before the state starts acting.
 
-A resume re-enters the checkpointed state with the context it had: a state is a safe point because it
+A resume re-enters the checkpointed state with the memory it had: a state is a safe point because it
 starts from a standing vehicle (each state's work begins with the truck's own stop or drive commands).
 So a pickup resumed after its lift continues with the load on the forks and never lifts again, and a
 delivery resumed knows the load is on the forks. In the simulator the world is restored from the same
@@ -22,12 +23,8 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from palletpilot.executor.core.behaviour import TemporaryNodes
 from palletpilot.executor.core.results import TaskResult
-from palletpilot.geometry import SE2, SE3, PalletpilotError
-from palletpilot.perception.calibration_io import Calibration
+from palletpilot.geometry import SE2, PalletpilotError
 
 if TYPE_CHECKING:
     from palletpilot.executor.adapters.stores.journal import Journal
@@ -39,14 +36,6 @@ RESUME_YAW_TOLERANCE_DEG = 10.0
 
 class ResumeError(PalletpilotError):
     """The journal cannot be resumed here (the truck is elsewhere, the files changed); one line."""
-
-
-def _se3_json(T: SE3 | None) -> list[list[float]] | None:
-    return None if T is None else np.asarray(T.matrix).tolist()
-
-
-def _se3(doc: Any) -> SE3 | None:
-    return None if doc is None else SE3.from_matrix(np.asarray(doc, dtype=float))
 
 
 class Checkpointer:
@@ -61,13 +50,12 @@ class Checkpointer:
     def skip_history(self, runner: Runner) -> None:
         """After a resume: the restored trajectory and paths are already in the journal."""
         self._trajectory_n = len(runner.trajectory)
-        self._planned_n = len(runner.ctx.planned_paths)
+        self._planned_n = len(runner.ctx.memory.planned_paths)
 
     def checkpoint(self, runner: Runner, index: int, state: str | None, current: TaskResult | None) -> None:
         """Commit one checkpoint (see the module docstring)."""
-        ctx = runner.ctx
+        memory = runner.ctx.memory
         pose = runner.vehicle.localization()
-        cal = ctx.calibration
         doc = {
             "t": runner.clock.now(),
             "paused_total_s": runner.paused_total_s,
@@ -75,30 +63,17 @@ class Checkpointer:
             "state": state,
             "pose": [pose.x, pose.y, pose.yaw],
             "load": bool(runner.vehicle.load_detected()),
-            "ctx": {
-                "at_node": ctx.at_node,
-                "heading": ctx.heading,
-                "attempts": ctx.attempts,
-                "pallet_node": ctx.pallet_node,
-                "pre_node": ctx.pre_node,
-                "node_before": ctx.node_before,
-                "route_to_pre": ctx.route_to_pre,
-                "calibration": None
-                if cal is None
-                else {"T": _se3_json(cal.T_forklift_camera), "method": cal.method, "quality": cal.quality},
-                "estimated_pallet": _se3_json(ctx.estimated_pallet),
-                "temporary": [t.to_json() for t in ctx.temporary],
-            },
+            "ctx": memory.to_json(),
             "results": [r.to_json() for r in runner.results],
             "current": None if current is None else current.to_json(),
             "stops": runner.stops,
             "trajectory": runner.trajectory[self._trajectory_n :],
-            "planned": ctx.planned_paths[self._planned_n :],
+            "planned": memory.planned_paths[self._planned_n :],
             "world": None if self.world is None else self.world(),
         }
         self.journal.checkpoint(doc)
         self._trajectory_n = len(runner.trajectory)
-        self._planned_n = len(ctx.planned_paths)
+        self._planned_n = len(memory.planned_paths)
 
 
 class ResumePoint:
@@ -157,37 +132,26 @@ class ResumePoint:
             raise ResumeError(f"the journal left the forks with {had}, the load sensor says otherwise")
 
     def restore_runner(self, runner: Runner) -> None:
-        """Finished tasks, history and mission-wide context into a new runner."""
-        last, ctx = self.last, runner.ctx
+        """Finished tasks, history and mission-wide memory into a new runner."""
+        last, memory = self.last, runner.ctx.memory
         runner.results = [TaskResult.from_json(r) for r in last["results"]]
         runner.trajectory = [(t, x, y, yaw) for cp in self.checkpoints for t, x, y, yaw in cp["trajectory"]]
-        ctx.planned_paths = [[(x, y) for x, y in path] for cp in self.checkpoints for path in cp["planned"]]
+        memory.planned_paths = [[(x, y) for x, y in path] for cp in self.checkpoints for path in cp["planned"]]
         runner.stops = list(last["stops"])
         runner.paused_total_s = float(last["paused_total_s"])
-        ctx.at_node = str(last["ctx"]["at_node"])
-        ctx.heading = float(last["ctx"]["heading"])
-        ctx.last_motion_s = self.t
+        memory.restore_position(last["ctx"])
+        memory.last_motion_s = self.t
         if runner.checkpointer is not None:
             runner.checkpointer.skip_history(runner)
 
     def restore_task(self, runner: Runner, result: TaskResult) -> None:
-        """The interrupted task's context and record, its temporary nodes back in the overlay."""
+        """The interrupted task's memory and record, its temporary nodes back in the overlay."""
         from palletpilot.executor.core.pickup import add_temporary_nodes
 
-        ctx, saved = runner.ctx, self.last["ctx"]
         current = self.last["current"] or {}
         result.start_s = float(current.get("start_s", self.t))
         result.states = list(current.get("states", []))
         result.record.update(current.get("record", {}))
-        ctx.attempts = int(saved["attempts"])
-        ctx.pallet_node, ctx.pre_node = str(saved["pallet_node"]), str(saved["pre_node"])
-        ctx.node_before = saved["node_before"]
-        ctx.route_to_pre = [str(n) for n in saved.get("route_to_pre", [])]
-        cal = saved["calibration"]
-        ctx.calibration = None if cal is None else Calibration(_se3(cal["T"]), str(cal["method"]), dict(cal["quality"]))  # type: ignore[arg-type]
-        ctx.estimated_pallet = _se3(saved["estimated_pallet"])
-        ctx.estimate = None
-        ctx.temporary = []
-        for spec in saved["temporary"]:
-            add_temporary_nodes(ctx, TemporaryNodes.from_json(spec))
-        runner.log("task_resumed", task=result.index, state=self.state, attempts=ctx.attempts)
+        for spec in runner.ctx.memory.restore_task(self.last["ctx"]):
+            add_temporary_nodes(runner.ctx, spec)
+        runner.log("task_resumed", task=result.index, state=self.state, attempts=runner.ctx.memory.attempts)

@@ -19,6 +19,7 @@ Public API: `Runner`, `TaskResult`, `SimClock`, `WallClock` (re-exported from `e
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import traceback
 from collections.abc import Callable, Sequence
@@ -27,7 +28,7 @@ from typing import Any, TextIO
 from palletpilot.control.follower import Follower
 from palletpilot.control.mpc import MpcFollower
 from palletpilot.control.vehicle import VehicleParams
-from palletpilot.executor.core.behaviour import Behaviour, Context, Settings
+from palletpilot.executor.core.behaviour import Behaviour, Context, Settings, TaskMemory
 from palletpilot.executor.core.clock import Clock, SimClock, WallClock
 from palletpilot.executor.core.controls import Controls
 from palletpilot.executor.core.driving import FollowRoute, SetForks, travel_height
@@ -42,7 +43,7 @@ from palletpilot.executor.core.errors import (
     TaskFailed,
 )
 from palletpilot.executor.core.jobs import Jobs
-from palletpilot.executor.core.mission import Mission
+from palletpilot.executor.core.mission import Mission, Task
 from palletpilot.executor.core.progress import Progress
 from palletpilot.executor.core.results import TaskResult
 from palletpilot.executor.core.resume import Checkpointer, ResumePoint
@@ -104,13 +105,19 @@ class Runner:
         resume: ResumePoint | None = None,
         listeners: Sequence[RunObserver] = (),
         watchdog_limits: WatchdogLimits | None = None,
+        planner: Planner | None = None,
+        start_heading: float | None = None,
     ) -> None:
+        """A runner of `mission` from `start_node`, facing `start_heading` (rad, world frame; None: the
+        node's own yaw). `planner`: plans the tasks' routes (None: the roadmap's `Planner`; the AGV gives
+        one that answers with its order's edges). `resume`: continue from this checkpoint."""
         self.mission = mission
         self.pallet_types = mission.pallet_types()  # per task: the pallet it handles
         self.clock = clock
-        self.settings = settings or Settings()
-        if mission.blocked_wait_s is not None:
-            self.settings.blocked_wait_s = mission.blocked_wait_s
+        settings = settings or Settings()
+        if mission.blocked_wait_s is not None:  # the mission's own wait, for this run only
+            settings = dataclasses.replace(settings, blocked_wait_s=mission.blocked_wait_s)
+        self.settings = settings
         self.events = events
         self.progress = Progress(progress) if progress is not None else None
         self.controls = controls or Controls()
@@ -134,7 +141,7 @@ class Runner:
             vehicle=self.vehicle,
             perception=perception,
             roadmap=roadmap,
-            planner=Planner(roadmap),
+            planner=planner or Planner(roadmap),
             follower=follower or MpcFollower(params),
             params=params,
             forks=forks,
@@ -142,11 +149,10 @@ class Runner:
             settings=self.settings,
             now=self.task_time,
             log=self.log,
-            at_node=start_node,
-            heading=start.pose.yaw,
             jobs=Jobs(clock.deterministic, clock.now),
             clock_now=clock.now,
             frame=self._frame,
+            memory=TaskMemory(start_node, start.pose.yaw if start_heading is None else start_heading),
         )
         if resume is not None:
             resume.restore_runner(self)
@@ -191,7 +197,7 @@ class Runner:
                 togo = f" {remaining:5.1f} m to go"
         paused = " | PAUSED" if self._paused_since is not None else ""
         # the Pickup's pallet estimates so far, as report.json's `attempts` counts them (other tasks make none)
-        estimates = f" | estimate {self.ctx.attempts}" if self.ctx.attempts else ""
+        estimates = f" | estimate {self.ctx.memory.attempts}" if self.ctx.memory.attempts else ""
         line = (
             f"[{self.clock.now():7.1f} s] task {task.index + 1}/{len(self.mission.tasks)} {task.type}"
             f" {task.node or ''} | {state}{estimates}{togo}{paused}"
@@ -230,25 +236,25 @@ class Runner:
             self.progress.close()
         return ok
 
-    def _run_task(self, index: int, task: Any, start_state: str | None) -> TaskResult:
+    def _run_task(self, index: int, task: Task, start_state: str | None) -> TaskResult:
         ctx = self.ctx
         kind = pickup_kind(self.settings) if task.type == "pickup" else task.type
         table = behaviours(kind, self.settings)
         node = getattr(task, "node", None)
         result = TaskResult(index, task.type, node, start_s=self.clock.now())
         resuming = start_state is not None and self.resume_point is not None
+        memory = ctx.memory
         if not resuming:
-            ctx.task, ctx.attempts, ctx.calibration, ctx.estimate, ctx.estimated_pallet = task, 0, None, None, None
-            ctx.temporary, ctx.route_to_pre = [], []
+            memory.start_task(task)
             if node is not None and task.type in ("pickup", "delivery"):
-                ctx.pallet_node, ctx.pre_node = node, ctx.roadmap.pre_pallet_of(node)
+                memory.pallet_node, memory.pre_node = node, ctx.roadmap.pre_pallet_of(node)
             self.log("task_start", index=index, type=task.type, node=node)
-        ctx.task = task
-        ctx.pallet_type = self.pallet_types[index]
-        ctx.record = result.record
+        memory.task = task
+        memory.record = result.record
+        self.ctx = ctx = dataclasses.replace(ctx, pallet_type=self.pallet_types[index])
         model = build_machine(kind, initial=start_state)
         with contextlib.ExitStack() as stack:
-            ctx.overlay = stack.enter_context(ctx.roadmap.overlay())  # temporary nodes vanish with the task
+            memory.overlay = stack.enter_context(ctx.roadmap.overlay())  # temporary nodes vanish with the task
             if resuming:
                 assert self.resume_point is not None
                 self.resume_point.restore_task(self, result)
@@ -280,18 +286,18 @@ class Runner:
                 result.states.append({"state": state, "start_s": round(entered, 3), "end_s": end, "outcome": trigger})
                 self.log("state_end", task=index, state=state, outcome=trigger)
                 if state == "estimate_pallet" and trigger == "misaligned":
-                    ctx.node_before = self._node_before()
+                    memory.node_before = self._node_before()
                 getattr(model, trigger)()
                 behaviour = None
                 if state == "drive_to_pre_pallet" and trigger == "done":
-                    ctx.node_before = self._node_before()
-                    route = ctx.last_route
-                    ctx.route_to_pre = list(route.nodes) if route and route.nodes[-1] == ctx.pre_node else []
+                    memory.node_before = self._node_before()
+                    route = memory.last_route
+                    memory.route_to_pre = list(route.nodes) if route and route.nodes[-1] == memory.pre_node else []
             self._stop_safely(result.reason or "task end")
             if model.state == Outcome.FAILED and self.mission.returns_on_failure(task, self.settings.return_on_failure):
                 self._return_on_failure(result)  # inside the overlay: it may back out over temporary edges
         result.result = Outcome(model.state)
-        result.attempts = ctx.attempts
+        result.attempts = memory.attempts
         result.end_s = self.clock.now()
         self.log("task_end", task=index, result=result.result, reason=result.reason)
         return result
@@ -433,7 +439,7 @@ class Runner:
         height = v.fork_height
         moved_forks = self._last_fork_height is not None and abs(height - self._last_fork_height) > 1e-3
         if abs(v.speed) > STANDSTILL_SPEED or moved_forks:
-            self.ctx.last_motion_s = self.clock.now()
+            self.ctx.memory.last_motion_s = self.clock.now()
         self._last_fork_height = height
 
     def _frame(self) -> FrameBundle | None:
@@ -459,15 +465,16 @@ class Runner:
 
     def _node_before(self) -> str | None:
         """The node before the pre-pallet node: on the route that reached it, else a node joined both ways."""
-        ctx = self.ctx
-        route = ctx.last_route
-        if route is not None and ctx.pre_node in route.nodes:
-            before = route.node_before(ctx.pre_node)
-            if before is not None and ctx.roadmap.graph.has_edge(ctx.pre_node, before):
+        memory, graph = self.ctx.memory, self.ctx.roadmap.graph
+        route = memory.last_route
+        if route is not None and memory.pre_node in route.nodes:
+            before = route.node_before(memory.pre_node)
+            if before is not None and graph.has_edge(memory.pre_node, before):
                 return before
-        original_pre = ctx.roadmap.pre_pallet_of(ctx.task.node)
-        for u in ctx.roadmap.graph.predecessors(original_pre):
-            if u != ctx.task.node and ctx.roadmap.graph.has_edge(original_pre, u) and not ctx.roadmap.node(u).temporary:
+        pallet = memory.node_task().node
+        original_pre = self.ctx.roadmap.pre_pallet_of(pallet)
+        for u in graph.predecessors(original_pre):
+            if u != pallet and graph.has_edge(original_pre, u) and not self.ctx.roadmap.node(u).temporary:
                 return u
         return None
 
@@ -506,10 +513,10 @@ class Runner:
         with contextlib.suppress(Exception):
             if why is None:
                 record["parked"] = True
-                self.log("parked", task=result.index, node=ctx.at_node)
+                self.log("parked", task=result.index, node=ctx.memory.at_node)
             else:
                 record["reason"] = why
-                self.log("return_failed", task=result.index, node=ctx.at_node, reason=why)
+                self.log("return_failed", task=result.index, node=ctx.memory.at_node, reason=why)
 
     def _park(self, result: TaskResult, record: dict[str, Any]) -> str | None:
         """Drive to the nearest parking node (see `_return_on_failure`); None when there, else why the truck
@@ -517,10 +524,10 @@ class Runner:
         ctx = self.ctx
         if result.reason in STAY_STOPPED or self.controls.cancelled:
             return f"the task failed with {result.reason or CANCELLED}: the truck stays stopped"
-        here = ctx.roadmap.node(ctx.at_node)
+        here = ctx.roadmap.node(ctx.memory.at_node)
         pose = self.vehicle.localization()
         off_m = math.hypot(pose.x - here.pose.x, pose.y - here.pose.y)
-        off_deg = abs(math.degrees(angle_diff(pose.yaw, ctx.heading)))
+        off_deg = abs(math.degrees(angle_diff(pose.yaw, ctx.memory.heading)))
         if off_m > PARK_POSE_TOLERANCE_M or off_deg > PARK_YAW_TOLERANCE_DEG:
             return (
                 f"the truck stands {off_m:.2f} m and {off_deg:.0f} deg off node '{here.id}', the last it reached "
@@ -537,19 +544,19 @@ class Runner:
         best: Route | None = None
         for node in parking:  # the planner honours the heading; temporary edges lead out of a re-plan
             with contextlib.suppress(RoadmapError):
-                route = ctx.planner.plan(ctx.at_node, node.id, start_yaw=ctx.heading)
+                route = ctx.planner.plan(ctx.memory.at_node, node.id, start_yaw=ctx.memory.heading)
                 if best is None or route.length < best.length:
                     best = route
         if best is None:
             names = ", ".join(f"'{n.id}'" for n in parking)
-            return f"no parking node ({types}: {names}) can be reached from '{ctx.at_node}'"
+            return f"no parking node ({types}: {names}) can be reached from '{ctx.memory.at_node}'"
         goal, chosen = best.nodes[-1], best
         record["parking_node"], record["route_length_m"] = goal, round(best.length, 3)
         self.log(
             "returning_on_failure",
             task=result.index,
             failed=result.reason,
-            from_node=ctx.at_node,
+            from_node=ctx.memory.at_node,
             node=goal,
             route=best.nodes,
             length_m=round(best.length, 3),

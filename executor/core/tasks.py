@@ -49,6 +49,7 @@ from palletpilot.executor.core.errors import (
     VEHICLE_FAULT,
     TaskFailed,
 )
+from palletpilot.executor.core.mission import WaitTask
 from palletpilot.executor.core.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck, approach_route
 from palletpilot.executor.ports.vocabulary import Outcome
 from palletpilot.roadmap.planner import Route
@@ -262,8 +263,8 @@ def mermaid(task: str) -> str:
 
 
 def _pallet_height(ctx: Context) -> float:
-    h = ctx.task.height
-    return ctx.roadmap.node(ctx.task.node).height if h is None else h
+    task = ctx.memory.load_task()
+    return ctx.roadmap.node(task.node).height if task.height is None else task.height
 
 
 def _check_lifted(ctx: Context) -> None:
@@ -291,9 +292,9 @@ def _edge_route(start: Callable[[Context], str], end: Callable[[Context], str]) 
 def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Behaviour]]:
     """Factories of the behaviour of every non-final state of a task type."""
     s = settings
-    pre = lambda ctx: ctx.pre_node  # noqa: E731
-    pallet = lambda ctx: ctx.pallet_node  # noqa: E731
-    before = lambda ctx: ctx.node_before or ""  # noqa: E731
+    pre = lambda ctx: ctx.memory.pre_node  # noqa: E731
+    pallet = lambda ctx: ctx.memory.pallet_node  # noqa: E731
+    before = lambda ctx: ctx.memory.node_before or ""  # noqa: E731
     entry_height = lambda ctx: _pallet_height(ctx) + s.fork_clearance  # noqa: E731
     if task_type in PICKUP_KINDS:
         table: dict[str, Callable[[], Behaviour]] = {
@@ -338,12 +339,12 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             "lower_to_travel": lambda: SetForks(travel_height),
         }
     if task_type == "move":
-        return {"drive": lambda: FollowRoute(lambda ctx: ctx.task.node)}
+        return {"drive": lambda: FollowRoute(lambda ctx: ctx.memory.node_task().node)}
     if task_type == "charge":
         return {
-            "drive": lambda: FollowRoute(lambda ctx: ctx.task.node),
+            "drive": lambda: FollowRoute(lambda ctx: ctx.memory.node_task().node),
             "charge": Charge,
         }
     if task_type == "wait":
-        return {"wait": lambda: Wait(lambda ctx: ctx.task.seconds)}
+        return {"wait": lambda: Wait(lambda ctx: ctx.memory.task_of(WaitTask).seconds)}
     raise KeyError(task_type)

@@ -278,15 +278,16 @@ class Recorder(RecorderCamera, RecorderEvents):
         return cast("VehiclePort", self.vehicle)
 
     def attach(self, runner: Runner, sim: SimFeed | None = None) -> None:
-        """Follow `runner`: its clock, its events (`on_event`, a `RunObserver`: given to the runner when it
-        was built, else subscribed here), the readings of the vehicle from `wrap_vehicle`; record the
-        roadmap and the start. Call before the runner logs its first event. In a session: a new leg (the
-        runner drives the session's vehicle wrapper; the roadmap was recorded at the session's start)."""
+        """Follow `runner`: its clock, its events (`on_event`, a `RunObserver` the runner was built with:
+        `compose.build_runner`), the readings of the vehicle from `wrap_vehicle`; record the roadmap and
+        the start. Call before the runner logs its first event. In a session: a new leg (the runner drives
+        the session's vehicle wrapper; the roadmap was recorded at the session's start). A runner built
+        without `on_event` is a `ValueError`: nothing is subscribed into a runner after it is built."""
+        if self.on_event not in runner.listeners:
+            raise ValueError("Recorder.attach: build the runner with Recorder.on_event among its observers")
         self.runner = runner
         ctx = runner.ctx
         self._params, self._forks, self._roadmap, self._follower = ctx.params, ctx.forks, ctx.roadmap, ctx.follower
-        if self.on_event not in runner.listeners:
-            runner.listeners.append(self.on_event)
         if self._session:
             self._guard("leg", self._leg_start)
             return
@@ -319,6 +320,12 @@ class Recorder(RecorderCamera, RecorderEvents):
         self.vehicle = RecordingVehicle(vehicle, on_beams=self._beams_read)
         self._guard("start", lambda: self._start(name))
         return cast("VehiclePort", self.vehicle)
+
+    @property
+    def in_session(self) -> bool:
+        """True after `start_session`: every runner drives the session's vehicle wrapper (`attach` only
+        follows it)."""
+        return self._session
 
     def detach(self) -> None:
         """The end of a session's leg: ticks go on without a runner until the next `attach`."""
@@ -481,7 +488,7 @@ class Recorder(RecorderCamera, RecorderEvents):
         self.json["/vehicle/state"].log(json.dumps(state).encode(), log_time=ns)
         self.count_message("/vehicle/state")
         self._horizon(follower, ns)
-        planned = [] if runner is None else runner.ctx.planned_paths
+        planned = [] if runner is None else runner.ctx.memory.planned_paths
         if runner is not None and len(planned) != self._paths_seen:
             self._paths_seen = len(planned)
             self._path_points = [[Point3(x=x, y=y, z=0.0) for x, y in p[::2] + p[-1:]] for p in planned]

@@ -102,16 +102,16 @@ class RecorderEvents:
         self._task.update(
             result=data.get("result"),
             reason=data.get("reason"),
-            attempts=ctx.attempts,
+            attempts=ctx.memory.attempts,
             end_s=t,
-            record=strict_json(ctx.record),
+            record=strict_json(ctx.memory.record),
         )
         self.log_json("/report/task", self._task, ns)
         self._task, self._state = None, ""
 
     def _on_calibrated(self, data: dict[str, Any], t: float, ns: int) -> None:
         assert self.runner is not None
-        calibration = self.runner.ctx.calibration
+        calibration = self.runner.ctx.memory.calibration
         if calibration is None:
             return
         self._calibration = calibration.T_forklift_camera
@@ -120,8 +120,8 @@ class RecorderEvents:
     def _on_pallet_estimate(self, data: dict[str, Any], t: float, ns: int) -> None:
         assert self.runner is not None
         ctx = self.runner.ctx
-        est = ctx.estimated_pallet
-        node = ctx.roadmap.node(str(data.get("against_node") or ctx.pallet_node))
+        est = ctx.memory.estimated_pallet
+        node = ctx.roadmap.node(str(data.get("against_node") or ctx.memory.pallet_node))
         if est is None:
             return
         st = ctx.settings

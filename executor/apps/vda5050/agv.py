@@ -57,6 +57,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, cast
 
 from palletpilot.executor.adapters.local_perception import LocalPerception
+from palletpilot.executor.apps import compose
 from palletpilot.executor.apps.vda5050 import validation
 from palletpilot.executor.apps.vda5050.actions import LOAD_HANDLING_DEVICE, IllegalTransitionError
 from palletpilot.executor.apps.vda5050.config import Loaded
@@ -381,7 +382,7 @@ class Agv(AgvInstantActions, AgvJournal):
         self.leg = leg
         s = self.snapshot
         with self._speed_limits(leg), from_where_it_stands(self.roadmap, leg, s.x, s.y) as route:
-            runner = Runner(
+            parts = compose.Parts(
                 mission,
                 self.roadmap,
                 self.vehicle,
@@ -391,23 +392,22 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.backend.params,
                 self.backend.forks,
                 route[0],
-                settings=self.settings,
-                follower=self.backend.follower,
-                controls=self.controls,
-                listeners=[*self.backend.listeners, self._on_event],
+                self.backend.follower,
+                observers=(*self.backend.listeners, self._on_event),
+                planner=OrderPlanner(self.roadmap, route),
+                start_heading=self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw,
             )
-            runner.ctx.heading = self.heading if route == leg.route else self.roadmap.node(route[0]).pose.yaw
-            runner.ctx.planner = OrderPlanner(self.roadmap, route)
+            runner = compose.build_runner(
+                parts, compose.Outputs(recorder=self.recorder), self.settings, controls=self.controls
+            )
             self.runner = runner
-            if self.recorder is not None:
-                self.recorder.attach(runner)
             try:
                 ok = runner.run()
             finally:
                 if self.recorder is not None:
                     self.recorder.detach()
         self.runner, self.leg = None, None
-        self.heading = runner.ctx.heading
+        self.heading = runner.ctx.memory.heading
         near = None if ok else self._nearest_node()
         if near is not None:  # stopped at a node (cancelled, failed): the heading it stands with there
             self.heading = self._axis_heading(near)
@@ -506,7 +506,7 @@ class Agv(AgvInstantActions, AgvJournal):
                 self.vehicle.set_safety_field_set("narrow")
                 self._gate(pre)
             elif state == "return_to_roadmap":
-                ctx = runner.ctx
+                ctx = runner.ctx.memory
                 if ctx.node_before and ctx.pre_node and self.roadmap.node(ctx.pre_node).temporary:
                     if not self.orders.can_enter(ctx.node_before):
                         self._gate(ctx.node_before)
@@ -519,7 +519,7 @@ class Agv(AgvInstantActions, AgvJournal):
             elif state == "reverse_out":
                 self.orders.arrive(pre)
             elif state == "return_to_roadmap":
-                self.orders.arrive(runner.ctx.at_node)
+                self.orders.arrive(runner.ctx.memory.at_node)
             self.changed()
 
     def _handled(self, a: Action, kind: str) -> None:
