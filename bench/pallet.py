@@ -90,6 +90,7 @@ class FrameSpec:
     ahead: float  # m from the fork tips to the nominal entry face
     seed: int
     pallet: tuple[tuple[str, Any], ...] = ()  # more fields of the scenario's pallet (type, damage, ...)
+    depth_correlation_px: float = 1.0  # the camera's depth noise correlation area (`CameraNoise`), pixels
 
 
 def scenario(spec: FrameSpec, width: int = 640, noise: bool = True) -> Scenario:
@@ -101,6 +102,7 @@ def scenario(spec: FrameSpec, width: int = 640, noise: bool = True) -> Scenario:
             "flying_pixel_rate": 0.5,
             "label_noise": True,
             "label_noise_px": 2,
+            "depth_correlation_px": spec.depth_correlation_px,
         }
         perturbation = {"xyz_sigma": 0.002, "angle_sigma_deg": 0.2}
     else:
@@ -305,6 +307,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=count(1, 100),
         default=Settings.max_frames_per_estimate,
         help="--families: more rounds while the fused yaw is uncertain, up to this many frames (as the Pickup)",
+    )
+    parser.add_argument(
+        "--depth-correlation-px",
+        type=number(1.0, 100.0, "px"),
+        default=1.0,
+        help="--families: the simulated camera's depth noise is correlated over this many pixels, and the "
+        "estimator is told so (as `camera noise` tells it through the camera file); 1: independent pixels",
     )
     parser.add_argument(
         "--estimate-yaw-sigma-deg",

@@ -5,8 +5,9 @@ Frames (ARCHITECTURE.md): the spread (`perception.pallet.PalletSpread`) states 1
 lateral = y, longitudinal = x of `T_estimated.t - T_true.t`, yaw the difference of the yaws.
 
 - `forklift_errors`: those three errors of one estimate.
-- `coverage`: per axis, the share of errors within `COVERAGE_SIGMAS` stated sigmas (`coverage_2sigma`) and
-  the median of |error| / sigma.
+- `coverage`: per axis, the share of errors within `COVERAGE_SIGMAS` stated sigmas (`coverage_2sigma`),
+  the median of |error| / sigma and the mean stated sigma (mm or deg: a spread that covers by being
+  needlessly wide shows there).
 - `crop_frame`, `crop_box`, `crop_check`: an independent check of the spread that needs no ground truth:
   the estimate of a frame and that of its own 4:3 crop around the pallet (cutting `CROP_CUT` of the
   pallet's width off one side; K's principal point shifted) should disagree by no more than their
@@ -53,20 +54,23 @@ def stated_sigmas(est: PalletEstimate) -> tuple[float, float, float]:
 
 
 def coverage(errors: Sequence[Sequence[float]], sigmas: Sequence[Sequence[float]]) -> dict[str, Any]:
-    """Per axis (`AXES`): `coverage_2sigma`, the share of |error| <= `COVERAGE_SIGMAS` sigma, and
-    `median_error_over_sigma`; None without errors. `errors` and `sigmas` are (lateral m, longitudinal m,
-    yaw rad) per estimate, in the same order."""
+    """Per axis (`AXES`): `coverage_2sigma`, the share of |error| <= `COVERAGE_SIGMAS` sigma,
+    `median_error_over_sigma` and `mean_sigma` (the mean stated 1-sigma, mm for lateral and longitudinal,
+    deg for yaw); None without errors. `errors` and `sigmas` are (lateral m, longitudinal m, yaw rad) per
+    estimate, in the same order."""
     out: dict[str, Any] = {}
     e = np.abs(np.asarray(errors, float).reshape(-1, 3))
     s = np.maximum(np.asarray(sigmas, float).reshape(-1, 3), 1e-12)
     for k, axis in enumerate(AXES):
         if len(e) == 0:
-            out[axis] = {"coverage_2sigma": None, "median_error_over_sigma": None}
+            out[axis] = {"coverage_2sigma": None, "median_error_over_sigma": None, "mean_sigma": None}
             continue
         z = e[:, k] / s[:, k]
+        unit = 180.0 / math.pi if axis == "yaw" else 1e3
         out[axis] = {
             "coverage_2sigma": round(float(np.mean(z <= COVERAGE_SIGMAS)), 4),
             "median_error_over_sigma": round(float(np.median(z)), 3),
+            "mean_sigma": round(float(np.mean(s[:, k])) * unit, 4),
         }
     return out
 

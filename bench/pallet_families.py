@@ -18,6 +18,10 @@ fused as the Pickup fuses them):
   inside the `block_2pocket_800` family (`drawn_block_pallet`: columns 85-155 mm, pockets 205-275 mm
   wide and 97-127 mm high) and built to +-5 mm, the estimator told the family, which measures them.
 
+`--depth-correlation-px A`: the simulated camera's depth noise is correlated over A pixels
+(`CameraNoise.depth_correlation_px`) and the estimator is told so (`estimator_config`), as a camera file
+measured by `palletpilot camera noise` tells it.
+
 Per family: detection rate (standpoints with an estimate), reasons not found (per frame), and for the
 fused estimates (`per_estimate`, what the Pickup acts on) and the single frames (`per_frame`) the
 lateral / longitudinal / yaw median, p95 and max and `wrong_pose`: estimates more than `WRONG_POSE_MM`
@@ -62,7 +66,13 @@ from palletpilot.bench.pallet_coverage import Honesty, crop_box
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import write_atomic
 from palletpilot.perception.calibration_io import Calibration
-from palletpilot.perception.pallet import FramePolicy, PalletEstimate, PalletNotFound, estimate_pallet
+from palletpilot.perception.pallet import (
+    FramePolicy,
+    PalletEstimate,
+    PalletNotFound,
+    estimate_pallet,
+    estimator_config,
+)
 
 FAMILY_GOALS = {"lateral_mm_p95": 10.0, "yaw_deg_p95": 0.5, "wrong_pose": 0, "coverage": 0.90}
 """Goals per pallet family: issue 17's, and issue 37's `coverage` (on every axis, of the single frames and
@@ -234,6 +244,9 @@ def run_families(args: argparse.Namespace, kind: str = "gt") -> dict:
     mode = _labels_mode(kind)
 
     specs = frame_specs(args.frames, args.seed, args.lateral, args.longitudinal, args.yaw_deg, tuple(args.ahead))
+    corr = float(getattr(args, "depth_correlation_px", 1.0))
+    specs = [dataclasses.replace(spec, depth_correlation_px=corr) for spec in specs]
+    config = estimator_config(False, corr)  # the camera file's correlation area, as `camera noise` measured it
     per = args.frames_per_estimate
     policy = FramePolicy(per, max(per, args.max_frames_per_estimate), math.radians(args.estimate_yaw_sigma_deg))
     out: dict[str, Any] = {}
@@ -256,7 +269,12 @@ def run_families(args: argparse.Namespace, kind: str = "gt") -> dict:
             T_true = SE3.from_matrix(frames[0].truth["T_forklift_pallet_true"])
             cal = Calibration(SE3.from_matrix(frames[0].truth["T_forklift_camera_true"]), "true")
             expected, support = expected_at(spec)
-            seen: dict[str, Any] = {"expected": expected, "labels": mode, "support_height_m": support}
+            seen: dict[str, Any] = {
+                "expected": expected,
+                "labels": mode,
+                "support_height_m": support,
+                "config": config,
+            }
             found: list[PalletEstimate] = []
             reasons: list[str] = []
             n_taken, more, first_round = 0, per, True
@@ -306,6 +324,7 @@ def run_families(args: argparse.Namespace, kind: str = "gt") -> dict:
         "misplacement": {"lateral_m": args.lateral, "longitudinal_m": args.longitudinal, "yaw_deg": args.yaw_deg},
         "entry_face_ahead_m": list(args.ahead),
         "wrong_pose_limits": {"mm": WRONG_POSE_MM, "deg": WRONG_POSE_DEG, "single_frame_sigmas": WRONG_POSE_SIGMAS},
+        "depth_correlation_px": corr,
         "render_s": round(render_s, 1),
         "labels": kind,
         "families": out,

@@ -22,7 +22,11 @@ or gives an error beyond `max_scale_error` (a wrong distance, not a camera).
 divided by `1 + s`). The tare file (`save_tare` / `load_tare`, JSON, written atomically):
 
     {"depth_scale_error": 0.0021, "distance_m": 1.5, "plane_distance_m": 1.50315,
-     "residual_disparity_rms": ..., "points": 76800, "frames": 3, "wall_angle_deg": 1.2}
+     "residual_disparity_rms": ..., "points": 76800, "frames": 3, "wall_angle_deg": 1.2,
+     "depth_correlation_px": 6.3}
+
+`depth_correlation_px` (optional, default 1) is not part of the tare: `palletpilot camera noise` measures it
+from still frames (`perception.depth_noise`) and writes it into the same file, the camera's file.
 
 Public API: `DepthTare`, `TareLimits`, `measure_depth_tare`, `correct_depth`, `save_tare`, `load_tare`.
 """
@@ -81,6 +85,9 @@ class DepthTare:
     points: int
     frames: int
     wall_angle_deg: float
+    depth_correlation_px: float = 1.0
+    """The depth noise's correlation area (pixels; `palletpilot camera noise`, `perception.depth_noise`): the
+    pallet estimate's spread takes it (`PalletEstimatorConfig.depth_correlation_px`); 1 until measured."""
 
     @property
     def correction(self) -> float:
@@ -102,6 +109,7 @@ class _TareFile(FileModel):
     points: int = Field(ge=0)
     frames: int = Field(ge=1)
     wall_angle_deg: float = Field(ge=0.0, le=90.0)
+    depth_correlation_px: float = Field(1.0, ge=1.0, le=400.0, description="depth noise correlation area (px)")
 
 
 def _region_rays(frame: FrameBundle, roi: float) -> tuple[np.ndarray, np.ndarray]:

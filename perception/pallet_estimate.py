@@ -118,6 +118,14 @@ class PalletEstimatorConfig:
     every frame of one camera): it moves the pallet along the camera's ray by s times its distance, 6 mm
     at 3.5 m. 0.0017 is +-0.3 % uniform, the simulator's D435; a camera with a depth tare
     (`perception.depth_tare`) is known to about 0.04 % (`TARED_DEPTH_SCALE_SIGMA`)."""
+    depth_correlation_px: float = 1.0
+    """The camera's depth-noise correlation area (pixels, at least 1): neighbouring pixels' depth errors are
+    correlated over about this many pixels, so N fitted pixels carry as much as N / this independent ones and
+    the own (per-frame) part of the spread, computed as if pixels were independent, is widened by its square
+    root. A camera property: `palletpilot camera noise` measures it from still frames into the camera's tare
+    file (`DepthTare.depth_correlation_px`). 1 (independent pixels) is the simulator's D435 unless its
+    `CameraNoise.depth_correlation_px` says otherwise; real stereo and ToF depth (block matching, filtering)
+    is correlated over several pixels (real ToF frames of issue 37 stated a yaw 3-5 times too small)."""
     build_tolerance_m: float = 0.005
     """A real pallet's boards and blocks are off its type's drawing: sizes by up to +- this, face positions by
     up to +- half of it (uniform; the `tolerance` family of `bench pallet`). Every frame of the pallet sees
@@ -157,13 +165,11 @@ TARED_DEPTH_SCALE_SIGMA = 0.0004
 """`depth_scale_sigma` after a depth tare: its residual (bench calibration: p95 0.06 %)."""
 
 
-def estimator_config(depth_tared: bool) -> PalletEstimatorConfig:
-    """The default tuning for a camera with (`TARED_DEPTH_SCALE_SIGMA`) or without a depth tare."""
-    return (
-        dataclasses.replace(DEFAULT_CONFIG, depth_scale_sigma=TARED_DEPTH_SCALE_SIGMA)
-        if depth_tared
-        else DEFAULT_CONFIG
-    )
+def estimator_config(depth_tared: bool, depth_correlation_px: float = 1.0) -> PalletEstimatorConfig:
+    """The default tuning for a camera with (`TARED_DEPTH_SCALE_SIGMA`) or without a depth tare, whose depth
+    noise is correlated over `depth_correlation_px` pixels (`PalletEstimatorConfig.depth_correlation_px`)."""
+    cfg = dataclasses.replace(DEFAULT_CONFIG, depth_correlation_px=max(float(depth_correlation_px), 1.0))
+    return dataclasses.replace(cfg, depth_scale_sigma=TARED_DEPTH_SCALE_SIGMA) if depth_tared else cfg
 
 
 @dataclass(frozen=True)

@@ -302,21 +302,25 @@ def _spread(
     off together). A deck yaw's board edges, straight to `part` at either end, turn by sqrt(2) part /
     length; its pixel-grid part is common too (and taken out of the own part). The depth scale error moves
     the origin along its ray (`_common_spread`).
+
+    The own parts from the fits (plane, deck) assume independent pixels; they are widened by the square
+    root of the camera's correlation area, `cfg.depth_correlation_px` (the pocket edges' scatter is measured).
     """
     n, e = plane.n, plane.e
     origin = plane.point(cam, s0)
     u = (origin - cam) / float(np.linalg.norm(origin - cam))  # unit ray to the origin
     lam = float(np.linalg.norm(origin - cam))  # 1 / lam = A u_x + B u_y on the plane
-    sigma_lam = lam * lam * math.sqrt(max(float(u[:2] @ plane.cov @ u[:2]), 0.0))
+    n_corr = max(cfg.depth_correlation_px, 1.0)  # the fits' covariances assume independent pixels
+    sigma_lam = lam * lam * math.sqrt(max(n_corr * float(u[:2] @ plane.cov @ u[:2]), 0.0))
     sigma_n = float(n @ u) * sigma_lam
     cov_xy = sigma_n**2 * np.outer(n[:2], n[:2]) + sigma_s**2 * np.outer(e[:2], e[:2])
-    var_yaw = float(cov3[0, 0]) if cov3 is not None else _yaw_variance(plane)
+    var_yaw = n_corr * (float(cov3[0, 0]) if cov3 is not None else _yaw_variance(plane))
     sx, sy, syaw = math.sqrt(cov_xy[0, 0]), math.sqrt(cov_xy[1, 1]), math.sqrt(max(var_yaw, 0.0))
     part = cfg.build_tolerance_m / (2.0 * math.sqrt(3.0))
     cyaw = part / max(_face_lever(columns), 1e-3)
     if deck_yaw is not None:
         sigma_deck, floor, length = deck_yaw
-        syaw = math.sqrt(max(sigma_deck**2 - floor**2, 0.0))
+        syaw = math.sqrt(n_corr * max(sigma_deck**2 - floor**2, 0.0))
         cyaw = math.hypot(math.sqrt(2.0) * part / length, floor)
     cx, cy = _common_spread(
         plane, cam, origin, 0.5 * part, math.hypot(0.5 * part, footprint / math.sqrt(12.0)), cfg.depth_scale_sigma

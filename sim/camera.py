@@ -18,6 +18,9 @@ Noise (`CameraNoise`), all drawn from the `numpy.random.Generator` passed in:
   depth through `z = f B / d`, so sigma(z) = z^2 s / (f B) with B = 0.050 m and f the depth
   sensor's focal length in pixels at the stream resolution (`d435_depth_focal_px`);
 - flying pixels: at depth edges a share of pixels takes a depth between foreground and background;
+- correlated noise (`depth_correlation_px` > 1): the disparity errors are spread over patches of about that
+  many pixels (white noise blurred by a Gaussian, its per-pixel sigma kept), as real stereo block matching
+  and ToF filtering give them;
 - dropouts at `invalid_rate`, depth quantised to `depth_unit_m` (1 mm, the Z16 unit);
 - no depth closer than `min_depth_m` (0.28 m) or beyond `max_depth_m`;
 - stereo shadow (`stereo_shadow`): no depth where the right IR imager, `baseline_m` to the image right,
@@ -121,6 +124,9 @@ class CameraNoise(FileModel):
     depth_noise: bool = True  # every depth artefact below; false: exact depth
     disparity_sigma_px: float = Field(D435_SUBPIXEL_PX, ge=0, le=5.0, description="stereo subpixel error (px)")
     baseline_m: float = Field(D435_BASELINE_M, gt=0, le=1.0)
+    depth_correlation_px: float = Field(
+        1.0, ge=1.0, le=100.0, description="correlation area (px) of the disparity noise; 1 = independent pixels"
+    )
     depth_unit_m: float = Field(0.001, ge=0, le=0.1, description="depth quantisation (m); 0 = none")
     invalid_rate: float = Field(0.005, ge=0, le=1, description="share of pixels randomly without depth")
     flying_pixel_rate: float = Field(0.5, ge=0, le=1, description="share of depth-edge pixels that fly")
@@ -566,6 +572,11 @@ class RaycastRenderer:
             with np.errstate(divide="ignore", invalid="ignore"):
                 disparity = np.divide(fb, depth, out=scratch)  # inf where there is no depth
                 rng.standard_normal(out=noisy, dtype=np.float32)
+                if noise.depth_correlation_px > 1.0:  # spread over a patch, the per-pixel sigma kept
+                    img = noisy.reshape(h, w)
+                    kernel, gain = _correlation_kernel(noise.depth_correlation_px)
+                    cv2.sepFilter2D(img, -1, kernel, kernel, dst=img, borderType=cv2.BORDER_REFLECT)
+                    noisy *= np.float32(gain)
                 noisy *= np.float32(noise.disparity_sigma_px)
                 disparity += noisy
                 np.divide(fb, disparity, out=depth)  # 0 where no depth; < 0 if noise flipped d (cut below)
@@ -580,6 +591,26 @@ class RaycastRenderer:
         np.copyto(depth, np.float32(0.0), where=np.less(depth, np.float32(camera.min_depth_m), out=rc.b[1]))
         np.copyto(depth, np.float32(0.0), where=np.greater(depth, np.float32(camera.max_depth_m), out=rc.b[1]))
         return depth
+
+
+@lru_cache(maxsize=8)
+def _correlation_kernel(area_px: float) -> tuple[np.ndarray, float]:
+    """A 1-D Gaussian kernel (float32 column) whose separable 2-D blur turns independent unit-variance
+    pixels into noise correlated over `area_px` pixels (the sum of its autocorrelation, `(sum k)^2 / sum k^2`
+    of the 2-D kernel), and the gain that brings that noise back to unit variance."""
+
+    def area(s: float) -> tuple[float, np.ndarray]:
+        half = max(1, int(np.ceil(4.0 * s)))
+        k = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
+        k /= k.sum()
+        return 1.0 / float(np.sum(k * k)) ** 2, k
+
+    lo, hi = 0.05, 10.0  # the Gaussian's sigma (px), by bisection on the area it gives
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if area(mid)[0] < area_px else (lo, mid)
+    got, k = area(0.5 * (lo + hi))
+    return k.astype(np.float32).reshape(-1, 1), float(np.sqrt(got))
 
 
 @lru_cache(maxsize=8)

@@ -20,6 +20,7 @@ from palletpilot.perception.frames import FrameBundle, SemanticClass
 from palletpilot.perception.geometry_labels import (
     LabelsMode,
     calibration_labels,
+    load_mask,
     pallet_labels,
     sources_note,
 )
@@ -193,3 +194,24 @@ def test_pixels_without_a_return_count_as_seen_past_the_face(frames):
     assert len(_no_return_rays(tof, T_cf, rs, cs, height, DEFAULT_CONFIG).w) > 1000  # they are used
     off = dataclasses.replace(DEFAULT_CONFIG, no_return_range_m=0.0)
     assert len(_no_return_rays(tof, T_cf, rs, cs, height, off).w) == 0
+
+
+def test_the_deck_layer_of_a_loaded_pallet_is_told_by_ray_not_by_noisy_depth():
+    """A loaded pallet's deck layer (cross board and deck front, above the pockets) is masked wherever depth
+    noise puts its pixels along their rays, and the block layer below never is: a cut on the noisy points
+    kept the deck-layer pixels that noise put far (and, looking down, low), which pushed the face fit back."""
+    pallet = PalletType.eur()
+    cam = np.array([0.0, 0.0, 1.6])  # forklift frame; the entry face 3.5 m ahead, where depth scatters ~5 cm
+    T_fp = SE3(None, (3.5, 0.0, 0.0))
+    ys, zs = np.meshgrid(np.linspace(-0.38, 0.38, 40), np.linspace(0.01, 0.14, 27))
+    face = np.stack([np.full_like(ys, 3.5), ys, zs], axis=-1)  # the entry face's true points
+    load = np.stack([np.full_like(ys, 3.52), ys, 0.17 + 4 * zs], axis=-1)  # a load's front above the deck
+    true = np.concatenate([face, load])
+    ray = (true - cam) / (true[..., :1] - cam[0])  # per unit forklift x, as depth noise moves a point
+    rng = np.random.default_rng(3)
+    points = true + ray * rng.normal(0.0, 0.05, true.shape[:2])[..., None]
+    mask, loaded = load_mask(points, T_fp, pallet, cam)
+    assert loaded
+    layer, z = mask[: len(face)], face[..., 2]
+    assert layer[(z > pallet.pocket_height + 0.002) & (z < pallet.height)].all()
+    assert not layer[z < pallet.pocket_height - 0.002].any()

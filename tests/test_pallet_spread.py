@@ -119,6 +119,8 @@ def test_coverage_counts_errors_within_two_sigma():
     assert cov["lateral"]["median_error_over_sigma"] == pytest.approx(3.0)
     assert cov["longitudinal"]["coverage_2sigma"] == 1.0
     assert cov["yaw"]["coverage_2sigma"] == 1.0  # 2 sigma exactly is within
+    assert cov["lateral"]["mean_sigma"] == pytest.approx(1.0)  # mm
+    assert cov["yaw"]["mean_sigma"] == pytest.approx(math.degrees(0.01), abs=1e-4)  # deg
     assert coverage([], [])["yaw"]["coverage_2sigma"] is None
     honesty = Honesty()
     assert honesty.result()["worst"] is None and honesty.result()["crop"]["checks"] == 0

@@ -47,7 +47,9 @@ class LocalPerception:
         self.calibrator = Calibrator(forks, method, labels=labels)
         self.segmenter = segmenter
         self.depth_tare = depth_tare
-        self.pallet_config = estimator_config(depth_tared=depth_tare is not None)  # the spread knows the tare
+        self.pallet_config = estimator_config(  # the spread knows the tare and the camera's noise correlation
+            depth_tare is not None, depth_tare.depth_correlation_px if depth_tare else 1.0
+        )
 
     def _labelled(self, frame: FrameBundle) -> FrameBundle:
         frame = correct_depth(frame, self.depth_tare)

@@ -78,7 +78,7 @@ def cmd_estimate_pallet(args: argparse.Namespace) -> int:
             frame,
             calibration,
             pallet,
-            config=estimator_config(depth_tared=tare is not None),
+            config=estimator_config(tare is not None, tare.depth_correlation_px if tare else 1.0),
             expected=expected,
             labels=LabelsMode(args.labels),
             support_height_m=args.support_height,
