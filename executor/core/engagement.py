@@ -14,7 +14,8 @@ allows (`pickup_tolerances`); elsewhere it keeps the geometry's (the tips past t
 so a pallet the truck can reach fully is still re-planned to until it is. Before entering,
 `engagement_problems` checks the depth the forks will reach against the estimate (`SafetyCheck`).
 
-Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`.
+Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`,
+`forks_outside_pockets`.
 """
 
 from __future__ import annotations
@@ -124,3 +125,28 @@ def engagement_problems(forks: ForkGeometry, pallet: PalletType, T_pallet_forkli
         f"the fork tips would reach {depth * 1e3:.0f} mm into the pallet, it needs {need * 1e3:.0f} mm ({why}) "
         f"and {margin * 1e3:.0f} mm margin"
     ]
+
+
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
+    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
+    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
+    tip's depth. Both poses are in the world frame (SE2)."""
+    forks, pallet = ctx.forks, ctx.pallet_type
+    T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
+    depth = min(pallet.length, forks.length)
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
+    problems = []
+    for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
+        worst = 0.0
+        for x_pallet in (0.0, depth):
+            # the fork's centre line, a line along the forklift's x axis, at this depth in the pallet
+            c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
+            origin = T_pallet_forklift.apply([0.0, fork_y])
+            if abs(c) < 1e-6:
+                worst = math.inf
+                break
+            y = origin[1] + (x_pallet - origin[0]) * s_ / c
+            worst = max(worst, abs(y - pocket_y) - half_free)
+        if worst > 0.0:
+            problems.append(f"the {name} fork would pass {worst * 1e3:.0f} mm beside its pocket")
+    return problems

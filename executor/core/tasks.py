@@ -49,6 +49,7 @@ from palletpilot.executor.core.errors import (
     VEHICLE_FAULT,
     TaskFailed,
 )
+from palletpilot.executor.core.manoeuvre import exit_route
 from palletpilot.executor.core.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck, approach_route
 from palletpilot.executor.ports.vocabulary import Outcome
 from palletpilot.roadmap.planner import Route
@@ -319,7 +320,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             table.update(
                 {
                     "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
-                    "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
+                    "back_off": lambda: FollowRoute(before, via=exit_route),
                     "replan": Replan,
                     "approach": lambda: FollowRoute(pre, via=approach_route),
                     "return_to_roadmap": ReturnToRoadmap,
