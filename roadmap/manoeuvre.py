@@ -61,16 +61,21 @@ class Footprint:
 @dataclasses.dataclass(frozen=True)
 class Obstacle:
     """A known static obstacle, a convex polygon on the floor: `corners` (k, 2) in the world frame (m),
-    counter-clockwise; `name` says what it is in messages (`the rack at 'r3'`)."""
+    counter-clockwise; `name` says what it is in messages (`the rack at 'r3'`). `approach_only`: only the
+    empty truck passes it (the pallet to pick, and its rack: the loaded truck leaves them behind), so it is
+    kept clear of the empty outline."""
 
     name: str
     corners: np.ndarray
+    approach_only: bool = False
 
     @classmethod
-    def box(cls, name: str, pose: SE2, x0: float, x1: float, y0: float, y1: float) -> Obstacle:
+    def box(
+        cls, name: str, pose: SE2, x0: float, x1: float, y0: float, y1: float, approach_only: bool = False
+    ) -> Obstacle:
         """The rectangle x0..x1, y0..y1 (m) of the frame `pose` (world)."""
         local = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
-        return cls(name, pose.apply(local))
+        return cls(name, pose.apply(local), approach_only)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +250,7 @@ class _Search:
     goal: SE2
     max_curvature: float
     footprint: Footprint
+    empty: Footprint
     obstacles: Sequence[Obstacle]
     limits: ManoeuvreLimits
     connector: Callable[[SE2, SE2, float], Curve]
@@ -264,12 +270,22 @@ class _Search:
         if float(far.max()) > self.limits.reach_m:
             self.out_of_reach += 1
             return False
-        obstacle = footprint_hits(poses, self.footprint, self.obstacles, self.limits.clearance_m)
+        obstacle = self.hit(poses)
         if obstacle is not None:
             self.blocked += 1
             self.hits[obstacle.name] += 1
             return False
         return True
+
+    def hit(self, poses: np.ndarray) -> Obstacle | None:
+        """The first obstacle the truck comes within the clearance of at `poses` (n, 3): the loaded outline
+        for most, the empty one for those passed on the way in only."""
+        grow = self.limits.clearance_m
+        loaded = [o for o in self.obstacles if not o.approach_only]
+        found = footprint_hits(poses, self.footprint, loaded, grow)
+        if found is None:
+            found = footprint_hits(poses, self.empty, [o for o in self.obstacles if o.approach_only], grow)
+        return found
 
     def sequences(self) -> Iterator[tuple[ManoeuvreSegment, ...]]:
         """Collision-free move sequences from the start, fewer moves first, then the shorter."""
@@ -378,15 +394,17 @@ def plan_manoeuvre(
     obstacles: Sequence[Obstacle],
     limits: ManoeuvreLimits | None = None,
     connector: Callable[[SE2, SE2, float], Curve] = connect,
+    empty: Footprint | None = None,
 ) -> Manoeuvre:
     """The shortest manoeuvre found from the truck's `start` to `goal` (poses in the world frame, m, rad)
-    with |curvature| <= `max_curvature` (1/m), keeping `footprint` clear of `obstacles` (see the module
-    docstring). Raises `RoadmapError` saying what was tried and why nothing fits."""
+    with |curvature| <= `max_curvature` (1/m), keeping `footprint` (the loaded truck; `empty`, default the
+    same, for `approach_only` obstacles) clear of `obstacles` (see the module docstring). Raises
+    `RoadmapError` saying what was tried and why nothing fits."""
     limits = limits or ManoeuvreLimits()
     if max_curvature <= 0:
         raise RoadmapError(f"curvature limit must be positive, got {max_curvature}")
-    search = _Search(start, goal, max_curvature, footprint, obstacles, limits, connector)
-    goal_hit = footprint_hits(np.array([[goal.x, goal.y, goal.yaw]]), footprint, obstacles, limits.clearance_m)
+    search = _Search(start, goal, max_curvature, footprint, empty or footprint, obstacles, limits, connector)
+    goal_hit = search.hit(np.array([[goal.x, goal.y, goal.yaw]]))
     if goal_hit is not None:
         raise RoadmapError(
             f"no manoeuvre: the truck at the new pre-pallet pose would come within {limits.clearance_m:.2f} m "

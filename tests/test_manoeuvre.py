@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
+from palletpilot.bench.missions import NARROW_AISLE_WIDTH_M, NARROW_RACK_DEPTH_M
 from palletpilot.executor.adapters.stores.journal import Journal
 from palletpilot.executor.apps.app import run_simulated
 from palletpilot.executor.core.behaviour import TemporaryNodes
@@ -165,10 +166,11 @@ def test_the_narrow_aisle_pallet_is_picked_after_a_manoeuvre(tmp_path):
         assert [e.name for e in add_temporary_nodes(ctx, spec)] == record["edges"]
 
 
-def test_the_narrow_aisle_map_is_as_its_header_says():
+def test_the_narrow_aisle_map_is_as_its_header_and_the_bench_say():
     roadmap = load_map(MISSIONS / "narrow_aisle.yaml")
     north, south = roadmap.node("rack_n2"), roadmap.node("rack_s2")
     # the rack's front stands 0.10 m beyond its node (`sim.simulator`), a 1.1 m rack behind row S's front
-    assert (north.pose.y + 0.10) - (south.pose.y + 0.10 + 1.1) == pytest.approx(4.5)
+    aisle = (north.pose.y + 0.10) - (south.pose.y + 0.10 + NARROW_RACK_DEPTH_M)
+    assert aisle == pytest.approx(NARROW_AISLE_WIDTH_M)  # as `bench missions` states it
     assert north.height == 1.8 and roadmap.edge("aA2", "rack_n2_pre").curve.kind == "arc"
     assert not roadmap.graph.has_edge("aA2", "aA1")  # one-way: no node back along the aisle

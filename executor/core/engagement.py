@@ -50,7 +50,15 @@ def _at_rack_limit(ctx: Context) -> bool:
     if original.height <= 0.0 or not ctx.pallet_node or ctx.pallet_node == original.id:
         return False
     rel = original.pose.inv() @ ctx.roadmap.node(ctx.pallet_node).pose
-    return rel.x >= ctx.settings.rack_overrun - _AT_LIMIT_M
+    return _mast_reach(ctx, rel) >= ctx.settings.rack_overrun - _AT_LIMIT_M
+
+
+def _mast_reach(ctx: Context, rel: SE2) -> float:
+    """How far (m) past the rack node the truck at `rel` (its pose in the node's frame) goes, measured where
+    the mast meets the beam: the heels' x, plus what the leading front corner of a turned mast gains on the
+    straight mast's front."""
+    body = ctx.params.body
+    return rel.x + body.front_x * (math.cos(rel.yaw) - 1.0) + 0.5 * body.width * abs(math.sin(rel.yaw))
 
 
 def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
@@ -66,7 +74,9 @@ def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
 
 def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
-    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
+    node by more than `Settings.rack_overrun` (m) along its heading (less where the truck stands turned: the
+    mast's leading front corner goes no further than the straight mast's front would); the forks then
+    enter less deep.
 
     Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would not reach the pallet
     type's minimum engagement (with the longitudinal margin), naming how deep they could reach (mm).
@@ -76,7 +86,7 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     if original.height <= 0.0:
         return pallet_node_pose
     rel = original.pose.inv() @ pallet_node_pose
-    excess = rel.x - ctx.settings.rack_overrun
+    excess = _mast_reach(ctx, rel) - ctx.settings.rack_overrun
     if excess <= 0.0:
         return pallet_node_pose
     back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis

@@ -12,13 +12,15 @@ What the truck must keep clear of, with `ManoeuvreLimits.clearance_m` to spare (
 static obstacles the map states, that is the racks behind its rack slots (pallet and drop nodes above the
 floor: from where the mast would meet the front beam, `Settings.rack_overrun`, `RACK_DEPTH_M` deep and
 `RACK_HALF_BAY_M` either side of the slot) and the pallets that may stand in its other slots (at their
-nodes, grown by `STORED_PALLET_MARGIN_M`), and the pallet to be picked where it was estimated. The truck's
-outline is the loaded one (body, and a pallet on the forks), since it leaves the same way with the load.
+nodes, grown by `STORED_PALLET_MARGIN_M` on the floor, `RACK_PALLET_MARGIN_M` in a rack), and the pallet to
+be picked where it was estimated. The truck's outline is the loaded one (body, and a pallet on the forks),
+since it leaves the same way with the load; the empty one for the pallet to pick and its rack, which only
+the empty truck passes.
 Anything else (people, boxes) the safety scanners watch for, as on every route.
 
-Public API: `RACK_DEPTH_M`, `RACK_HALF_BAY_M`, `STORED_PALLET_MARGIN_M`, `truck_footprint`,
-`static_obstacles`, `manoeuvre_planner`, `with_manoeuvre`, `manoeuvre_record`, `add_manoeuvre_edges`,
-`manoeuvre_nodes`, `exit_route`.
+Public API: `RACK_DEPTH_M`, `RACK_HALF_BAY_M`, `STORED_PALLET_MARGIN_M`, `RACK_PALLET_MARGIN_M`,
+`truck_footprint`, `static_obstacles`, `manoeuvre_planner`, `with_manoeuvre`, `manoeuvre_record`,
+`add_manoeuvre_edges`, `manoeuvre_nodes`, `exit_route`.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from typing import Any
 
 from palletpilot.control.safety import stopping_distance
 from palletpilot.executor.core.behaviour import Context, TemporaryNodes
+from palletpilot.executor.core.engagement import tip_depth
 from palletpilot.executor.core.errors import NO_FEASIBLE_APPROACH, TaskFailed
 from palletpilot.executor.core.jobs import Job
 from palletpilot.geometry import SE2
@@ -43,46 +46,58 @@ RACK_HALF_BAY_M = 1.40
 """How far (m) a rack is taken to reach either side of a rack slot's centre line (a 2.7 m bay with its
 uprights); neighbouring slots' racks join into one row."""
 STORED_PALLET_MARGIN_M = 0.15
-"""A pallet stored in another slot is taken to stand within this much (m) of its node."""
+"""A pallet stored in another floor slot is taken to stand within this much (m) of its node ..."""
+RACK_PALLET_MARGIN_M = 0.05
+"""... and one on a rack's beams, set against the rack, within this much."""
 TARGET_MARGIN_M = 0.05
 """The pallet to be picked stands within this much (m) of its estimate."""
 MANOEUVRE_SPEED = 0.3
 """m/s on a manoeuvre's moves."""
 
 
-def truck_footprint(ctx: Context) -> Footprint:
+def truck_footprint(ctx: Context, load_front_x: float | None = None) -> Footprint:
     """The truck's outline in the forklift frame (m): its body, and the forks carrying a pallet of the task's
-    type (the load's far end, or the fork tips when they reach further); behind it, the safety scanners'
-    protective field when reversing at `MANOEUVRE_SPEED` (a rack inside it would stop the truck)."""
+    type (`load_front_x`: the load's far end, by default the pallet's when the forks are fully in; or the
+    fork tips when they reach further); behind it, the safety scanners' protective field when reversing at
+    `MANOEUVRE_SPEED` (a rack inside it would stop the truck)."""
     params, pallet = ctx.params, ctx.pallet_type
     body, scanner = params.body, params.safety_scanner
-    front = max(ctx.forks.tip_x, ENTRY_GAP_M + pallet.length)
-    behind = 0.0 if scanner is None else scanner.protective_margin + stopping_distance(params, MANOEUVRE_SPEED)
-    return Footprint(body.rear_x - behind, front, 0.5 * max(body.width, pallet.width))
+    load = ENTRY_GAP_M + pallet.length if load_front_x is None else load_front_x
+    field = 0.0 if scanner is None else scanner.protective_margin + stopping_distance(params, MANOEUVRE_SPEED)
+    behind = max(0.0, field - ManoeuvreLimits.clearance_m)  # the field is the margin there
+    return Footprint(body.rear_x - behind, max(ctx.forks.tip_x, load), 0.5 * max(body.width, pallet.width))
 
 
 def static_obstacles(ctx: Context, target: SE2) -> list[Obstacle]:
     """The map's racks and stored pallets, and the pallet to be picked at `target` (`T_world_pallet`, the
-    estimate), as obstacles (world frame; see the module docstring)."""
+    estimate), as obstacles (world frame; see the module docstring). The pallet to pick and its rack are
+    passed by the empty truck only (`Obstacle.approach_only`)."""
     pallet, st = ctx.pallet_type, ctx.settings
     face = st.rack_overrun + ctx.params.body.front_x  # the rack's front beam, in the node's frame (m)
     out = []
     for node in ctx.roadmap.nodes():
         if node.temporary or node.type not in (NodeType.PALLET, NodeType.DROP):
             continue
+        mine = node.id == ctx.task.node
         if node.height > 0.0:
             out.append(
                 Obstacle.box(
-                    f"the rack at '{node.id}'", node.pose, face, face + RACK_DEPTH_M, -RACK_HALF_BAY_M, RACK_HALF_BAY_M
+                    f"the rack at '{node.id}'",
+                    node.pose,
+                    face,
+                    face + RACK_DEPTH_M,
+                    -RACK_HALF_BAY_M,
+                    RACK_HALF_BAY_M,
+                    approach_only=mine,
                 )
             )
-        if node.id != ctx.task.node:
-            m, half = STORED_PALLET_MARGIN_M, 0.5 * pallet.width + STORED_PALLET_MARGIN_M
-            x0 = ENTRY_GAP_M - m
+        if not mine:
+            m = RACK_PALLET_MARGIN_M if node.height > 0.0 else STORED_PALLET_MARGIN_M
+            x0, half = ENTRY_GAP_M - m, 0.5 * pallet.width + m
             out.append(Obstacle.box(f"a pallet at '{node.id}'", node.pose, x0, x0 + pallet.length + 2 * m, -half, half))
     half = 0.5 * pallet.width + TARGET_MARGIN_M
     out.append(
-        Obstacle.box("the pallet to pick", target, -TARGET_MARGIN_M, pallet.length + TARGET_MARGIN_M, -half, half)
+        Obstacle.box("the pallet to pick", target, -TARGET_MARGIN_M, pallet.length + TARGET_MARGIN_M, -half, half, True)
     )
     return out
 
@@ -93,9 +108,13 @@ def manoeuvre_planner(ctx: Context, spec: TemporaryNodes, target: SE2) -> Callab
     `RoadmapError` saying what it tried when no manoeuvre fits."""
     before = ctx.roadmap.node(spec.before).pose
     start = SE2(before.x, before.y, spec.heading)
-    footprint, obstacles = truck_footprint(ctx), static_obstacles(ctx, target)
+    # the load's far end once picked: the forks held back at a rack leave more of the pallet beyond the tips
+    reach = min(tip_depth(ctx.forks, target.inv() @ spec.pallet_pose), ctx.pallet_type.length)
+    load_front = ctx.forks.tip_x + ctx.pallet_type.length - reach
+    footprint, obstacles = truck_footprint(ctx, load_front), static_obstacles(ctx, target)
+    empty = dataclasses.replace(footprint, front_x=ctx.forks.tip_x, half_width=0.5 * ctx.params.body.width)
     limit = ctx.params.max_curvature
-    return lambda: plan_manoeuvre(start, spec.pre_pose, limit, footprint, obstacles, ManoeuvreLimits())
+    return lambda: plan_manoeuvre(start, spec.pre_pose, limit, footprint, obstacles, ManoeuvreLimits(), empty=empty)
 
 
 def with_manoeuvre(ctx: Context, spec: TemporaryNodes, job: Job[Manoeuvre], failures: list[str]) -> TemporaryNodes:
