@@ -14,7 +14,7 @@ direction of travel: its tangent is the truck's yaw driving forward, the yaw + p
 edges, `roadmap.graph`).
 
 Public API: `Footprint`, `Obstacle`, `ManoeuvreSegment`, `Manoeuvre`, `ManoeuvreLimits`, `plan_manoeuvre`,
-`footprint_hits`.
+`arc_then_line`, `footprint_hits`, `outline_hits`.
 """
 
 from __future__ import annotations
@@ -206,6 +206,17 @@ def footprint_hits(
     return None
 
 
+def outline_hits(
+    poses: np.ndarray, loaded: Footprint, empty: Footprint, obstacles: Sequence[Obstacle], grow: float
+) -> Obstacle | None:
+    """The first obstacle the truck at any of `poses` (n, 3) comes within `grow` (m) of: the `loaded` outline
+    against most, the `empty` one against those passed on the way in only (`Obstacle.approach_only`)."""
+    found = footprint_hits(poses, loaded, [o for o in obstacles if not o.approach_only], grow)
+    if found is None:
+        found = footprint_hits(poses, empty, [o for o in obstacles if o.approach_only], grow)
+    return found
+
+
 def _axes(corners: np.ndarray) -> np.ndarray:
     """Edge normals (..., k, 2) of polygons (..., k, 2)."""
     edges = np.roll(corners, -1, axis=-2) - corners
@@ -278,14 +289,8 @@ class _Search:
         return True
 
     def hit(self, poses: np.ndarray) -> Obstacle | None:
-        """The first obstacle the truck comes within the clearance of at `poses` (n, 3): the loaded outline
-        for most, the empty one for those passed on the way in only."""
-        grow = self.limits.clearance_m
-        loaded = [o for o in self.obstacles if not o.approach_only]
-        found = footprint_hits(poses, self.footprint, loaded, grow)
-        if found is None:
-            found = footprint_hits(poses, self.empty, [o for o in self.obstacles if o.approach_only], grow)
-        return found
+        """The first obstacle the truck comes within the clearance of at `poses` (n, 3) (`outline_hits`)."""
+        return outline_hits(poses, self.footprint, self.empty, self.obstacles, self.limits.clearance_m)
 
     def sequences(self) -> Iterator[tuple[ManoeuvreSegment, ...]]:
         """Collision-free move sequences from the start, fewer moves first, then the shorter."""

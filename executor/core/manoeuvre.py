@@ -16,10 +16,12 @@ nodes, grown by `STORED_PALLET_MARGIN_M` on the floor, `RACK_PALLET_MARGIN_M` in
 be picked where it was estimated. The truck's outline is the loaded one (body, and a pallet on the forks),
 since it leaves the same way with the load; the empty one for the pallet to pick and its rack, which only
 the empty truck passes.
-Anything else (people, boxes) the safety scanners watch for, as on every route.
+Anything else (people, boxes) the safety scanners watch for, as on every route. A re-plan's single
+approach curve is held to the same (`check_curve_clear`): one that would pass too near counts as no curve
+from that node.
 
 Public API: `RACK_DEPTH_M`, `RACK_HALF_BAY_M`, `STORED_PALLET_MARGIN_M`, `RACK_PALLET_MARGIN_M`,
-`truck_footprint`, `static_obstacles`, `manoeuvre_planner`, `with_manoeuvre`, `manoeuvre_record`,
+`truck_footprint`, `static_obstacles`, `manoeuvre_planner`, `check_curve_clear`, `with_manoeuvre`, `manoeuvre_record`,
 `add_manoeuvre_edges`, `manoeuvre_nodes`, `exit_route`.
 """
 
@@ -37,8 +39,16 @@ from palletpilot.executor.core.errors import NO_FEASIBLE_APPROACH, TaskFailed
 from palletpilot.executor.core.jobs import Job
 from palletpilot.geometry import SE2
 from palletpilot.perception.specs import ENTRY_GAP_M
-from palletpilot.roadmap import Direction, Edge, Node, NodeType, RoadmapError, Route
-from palletpilot.roadmap.manoeuvre import Footprint, Manoeuvre, ManoeuvreLimits, Obstacle, plan_manoeuvre
+from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route
+from palletpilot.roadmap.manoeuvre import (
+    Footprint,
+    Manoeuvre,
+    ManoeuvreLimits,
+    ManoeuvreSegment,
+    Obstacle,
+    outline_hits,
+    plan_manoeuvre,
+)
 
 RACK_DEPTH_M = 1.2
 """How deep (m) a rack behind a rack slot is taken to be, from its front beam (a 1.1 m rack, and more)."""
@@ -102,19 +112,35 @@ def static_obstacles(ctx: Context, target: SE2) -> list[Obstacle]:
     return out
 
 
+def _outlines(ctx: Context, spec: TemporaryNodes, target: SE2) -> tuple[Footprint, Footprint, list[Obstacle]]:
+    """The loaded and the empty outline of the truck, and the obstacles, for a re-plan towards the pallet
+    estimated at `target` (`T_world_pallet`) with the new pallet node `spec.pallet_pose`."""
+    # the load's far end once picked: the forks held back at a rack leave more of the pallet beyond the tips
+    reach = min(tip_depth(ctx.forks, target.inv() @ spec.pallet_pose), ctx.pallet_type.length)
+    loaded = truck_footprint(ctx, ctx.forks.tip_x + ctx.pallet_type.length - reach)
+    empty = dataclasses.replace(loaded, front_x=ctx.forks.tip_x, half_width=0.5 * ctx.params.body.width)
+    return loaded, empty, static_obstacles(ctx, target)
+
+
 def manoeuvre_planner(ctx: Context, spec: TemporaryNodes, target: SE2) -> Callable[[], Manoeuvre]:
     """The search for a manoeuvre from `spec.before` (the truck heading `spec.heading` there) to the new
     pre-pallet pose, its inputs taken now: a function to run off the control loop (`ctx.jobs`); it raises
     `RoadmapError` saying what it tried when no manoeuvre fits."""
     before = ctx.roadmap.node(spec.before).pose
     start = SE2(before.x, before.y, spec.heading)
-    # the load's far end once picked: the forks held back at a rack leave more of the pallet beyond the tips
-    reach = min(tip_depth(ctx.forks, target.inv() @ spec.pallet_pose), ctx.pallet_type.length)
-    load_front = ctx.forks.tip_x + ctx.pallet_type.length - reach
-    footprint, obstacles = truck_footprint(ctx, load_front), static_obstacles(ctx, target)
-    empty = dataclasses.replace(footprint, front_x=ctx.forks.tip_x, half_width=0.5 * ctx.params.body.width)
+    loaded, empty, obstacles = _outlines(ctx, spec, target)
     limit = ctx.params.max_curvature
-    return lambda: plan_manoeuvre(start, spec.pre_pose, limit, footprint, obstacles, ManoeuvreLimits(), empty=empty)
+    return lambda: plan_manoeuvre(start, spec.pre_pose, limit, loaded, obstacles, ManoeuvreLimits(), empty=empty)
+
+
+def check_curve_clear(ctx: Context, spec: TemporaryNodes, curve: Curve, target: SE2) -> None:
+    """`RoadmapError` when a re-plan's single approach curve (forward, and backed along in reverse) would
+    bring the truck within the clearance of a static obstacle, as a manoeuvre's moves may not."""
+    loaded, empty, obstacles = _outlines(ctx, spec, target)
+    clearance = ManoeuvreLimits.clearance_m
+    hit = outline_hits(ManoeuvreSegment(curve, Direction.FORWARD).poses(), loaded, empty, obstacles, clearance)
+    if hit is not None:
+        raise RoadmapError(f"the curve would bring the truck within {clearance:.2f} m of {hit.name}")
 
 
 def with_manoeuvre(ctx: Context, spec: TemporaryNodes, job: Job[Manoeuvre], failures: list[str]) -> TemporaryNodes:

@@ -37,6 +37,7 @@ from palletpilot.executor.core.errors import (
 from palletpilot.executor.core.jobs import Job
 from palletpilot.executor.core.manoeuvre import (
     add_manoeuvre_edges,
+    check_curve_clear,
     manoeuvre_nodes,
     manoeuvre_planner,
     manoeuvre_record,
@@ -537,6 +538,7 @@ class Replan(Behaviour):
             specs.append(spec)
             try:
                 curve = approach_curve(ctx, spec)
+                check_curve_clear(ctx, spec, curve, ctx.estimated_pallet.to_se2())  # the static obstacles
             except RoadmapError as exc:
                 self.failures.append(f"from '{before}': {exc}")
                 ctx.log("approach_infeasible", node=before, error=str(exc))
