@@ -196,7 +196,7 @@ def footprint_hits(
     reach = float(np.hypot(*np.abs(local).max(axis=0)))
     for obstacle in obstacles:
         poly = obstacle.corners
-        # a quick miss: the obstacle's nearest corner-circle is beyond the truck's outer circle
+        # a quick miss: the circles around the truck and around the obstacle do not meet
         radius = float(np.max(np.hypot(*(poly - poly.mean(axis=0)).T)))
         near = np.hypot(*(centre - poly.mean(axis=0)).T) <= reach + radius
         if not near.any():

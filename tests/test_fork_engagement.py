@@ -80,3 +80,8 @@ def test_a_turned_pallet_is_held_back_until_the_masts_leading_corner_clears_the_
     corner = turned.x + body.front_x * math.cos(turned.yaw) + 0.5 * body.width * abs(math.sin(turned.yaw))
     assert corner <= Settings.rack_overrun + body.front_x + 1e-6  # no further than the straight mast's front
     assert turned.x < 0.09 - 0.1  # held back along the pallet's axis by about 0.14 m
+    # Deeper still, the forks would carry too little: the refusal says the turn took its share.
+    from palletpilot.executor.core.errors import TaskFailed
+
+    with pytest.raises(TaskFailed, match=r"may go 100 mm past it \(146 mm less turned \+15 deg\)"):
+        rack_limited_pose(ctx, SE2(0.35, 0.0, math.radians(15.0)))  # type: ignore[arg-type]

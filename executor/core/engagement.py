@@ -106,10 +106,12 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     }
     ctx.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
     if reach - margin < need:
+        lead = _mast_reach(ctx, rel) - rel.x
+        turned = f" ({lead * 1e3:.0f} mm less turned {math.degrees(rel.yaw):+.0f} deg)" if lead > _AT_LIMIT_M else ""
         raise TaskFailed(
             NO_FEASIBLE_APPROACH,
             f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
-            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
+            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it{turned} before the mast meets the rack, and the fork "
             f"tips could then reach {reach * 1e3:.0f} mm into the pallet; it needs {need * 1e3:.0f} mm ({why}) "
             f"and {margin * 1e3:.0f} mm margin",
         )

@@ -15,14 +15,13 @@ floor: from where the mast would meet the front beam, `Settings.rack_overrun`, `
 nodes, grown by `STORED_PALLET_MARGIN_M` on the floor, `RACK_PALLET_MARGIN_M` in a rack), and the pallet to
 be picked where it was estimated. The truck's outline is the loaded one (body, and a pallet on the forks),
 since it leaves the same way with the load; the empty one for the pallet to pick and its rack, which only
-the empty truck passes.
-Anything else (people, boxes) the safety scanners watch for, as on every route. A re-plan's single
-approach curve is held to the same (`check_curve_clear`): one that would pass too near counts as no curve
-from that node.
+the empty truck passes. Anything else (people, boxes) the safety scanners watch for, as on every route.
+A re-plan's single approach curve is held to the same (`check_curve_clear`): one that would pass too near
+counts as no curve from that node.
 
 Public API: `RACK_DEPTH_M`, `RACK_HALF_BAY_M`, `STORED_PALLET_MARGIN_M`, `RACK_PALLET_MARGIN_M`,
-`truck_footprint`, `static_obstacles`, `manoeuvre_planner`, `check_curve_clear`, `with_manoeuvre`, `manoeuvre_record`,
-`add_manoeuvre_edges`, `manoeuvre_nodes`, `exit_route`.
+`truck_footprint`, `static_obstacles`, `manoeuvre_planner`, `check_curve_clear`, `with_manoeuvre`,
+`manoeuvre_record`, `add_manoeuvre_edges`, `manoeuvre_nodes`, `exit_route`.
 """
 
 from __future__ import annotations
