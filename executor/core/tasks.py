@@ -9,7 +9,8 @@ vehicle.
 The adaptive Pickup follows ARCHITECTURE.md: drive to the pre-pallet node, calibrate, raise the forks,
 estimate the pallet; when misaligned, lower the forks, back off to the node before the pre-pallet
 node, add temporary pallet and pre-pallet nodes from the estimate joined by a feasible curve (to that
-node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`), approach
+node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`; when no
+node gives one curve, a manoeuvre of forward and reverse moves: `executor.core.manoeuvre`), approach
 the new pre-pallet node (backing to the further node first) and repeat (at most `max_attempts`
 estimates); then the proximity safety check, enter, lift, reverse out, return to the roadmap (through
 the node the temporary nodes are joined to) and remove the temporary nodes. `--no-adapt` does not
