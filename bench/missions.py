@@ -1,18 +1,24 @@
 """`palletpilot bench missions`: seeded pickups of misplaced pallets, adaptive against the paper's original.
 
-Each run: one pallet at a random pallet node of the example map (floor or rack, empty or loaded),
-misplaced uniformly by +-0.30 m lateral, +-0.30 m longitudinal (in a rack at most 0.13 m deeper:
-`RACK_DEEPER_MAX_M`) and +-10 deg, D435 noise with label
-noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5) with a random per-run perturbation,
-localization noise; the forklift starts at the aisle node before the pallet's pre-pallet node and runs
-a single pickup. The same scenarios are run in each mode (`--modes`): `adaptive` (the adaptive Pickup as
-on a truck: perception selects its pixels by each of `--labels`: `fused`, the default, depth geometry
-with the shipped ONNX model's hints on the simulator's RGB; `geometry`, depth alone; `model`, the ONNX
-model alone; one row each, `adaptive` for fused alone, else `adaptive:LABELS`), `adaptive_truth` (the
-model mode fed the simulator's labels, label noise on), `no_adapt` (`run --no-adapt`: no re-plan, the
-camera's checks refuse a pallet the forks do not fit as it stands) and `paper` (the paper's original
-Pickup: no camera, only the proximity safety check; a baseline that no truck runs,
-`Settings.paper_baseline`). Success: the pallet is on the forks and nothing collided.
+Each run: one pallet of a family of `--families`, drawn per run: `floor` and `rack` (a floor or rack
+pallet node of the example map) and `narrow` (a slot of rack row N, beams at 1.8 m, in the narrow aisle
+of `missions/narrow_aisle.yaml`: `NARROW_AISLE_WIDTH_M` from rack to rack, racks `NARROW_RACK_DEPTH_M`
+deep, with pallets in the slots either side), empty or loaded, misplaced uniformly within the envelope
+(`ENVELOPE_M` lateral and longitudinal, `ENVELOPE_DEG`, on floor and rack slots alike: a rack pallet
+pushed deeper than the forks can carry is refused, `no_feasible_approach`, and counted as an engagement
+shortfall), D435 noise with label noise, a random camera mount (tilt 18-26 deg, pan +-2, roll +-1.5)
+with a random per-run perturbation, localization noise; the forklift starts at the aisle node before
+the pallet's pre-pallet node and runs a single pickup. The same scenarios are run in each mode
+(`--modes`): `adaptive` (the adaptive Pickup as on a truck: perception selects its pixels by each of
+`--labels`: `fused`, the default, depth geometry with the shipped ONNX model's hints on the simulator's
+RGB; `geometry`, depth alone; `model`, the ONNX model alone; one row each, `adaptive` for fused alone,
+else `adaptive:LABELS`), `adaptive_truth` (the model mode fed the simulator's labels, label noise on),
+`no_adapt` (`run --no-adapt`: no re-plan, the camera's checks refuse a pallet the forks do not fit as it
+stands) and `paper` (the paper's original Pickup: no camera, only the proximity safety check; a baseline
+that no truck runs, `Settings.paper_baseline`). Success: the pallet is on the forks and nothing
+collided. Per mode: the success rate (overall and per family), the manoeuvres planned (`manoeuvres`:
+re-plans that needed forward and reverse moves, and the runs with one) and the engagement shortfalls
+(`engagement`: pallets taken with the forks held back at the rack, and pallets refused for it).
 """
 
 from __future__ import annotations
@@ -36,13 +42,22 @@ if TYPE_CHECKING:
 
 MISSIONS = bundled_path("missions")
 MODES = ("adaptive", "adaptive_truth", "no_adapt", "paper")
+FAMILIES = ("floor", "rack", "narrow")
+"""`--families`: floor and rack slots of the example map, and the narrow aisle's rack row N."""
+ENVELOPE_M = 0.40
+ENVELOPE_DEG = 15.0
+"""Misplacements are drawn within +-`ENVELOPE_M` (m, lateral and longitudinal) and +-`ENVELOPE_DEG`."""
+NARROW_MAP = "narrow_aisle.yaml"
+NARROW_AISLE_WIDTH_M = 4.6
+NARROW_RACK_DEPTH_M = 1.1
+"""The narrow aisle (`missions/narrow_aisle.yaml`): rack to rack (m), and the simulator's rack depth (m)."""
 LABELS = ("fused", "geometry", "model")
 """`--labels` of the adaptive mode (`perception.labels_mode`)."""
 RACK_DEEPER_MAX_M = 0.13
-"""A rack pallet stands at most this much deeper than its node: the range the bench has always drawn, so
-its figures stay comparable. The Pickup takes deeper ones while the forks carry the pallet type's minimum
-engagement (`executor.core.engagement`: about 0.39 m for an EUR pallet with the example forks) and refuses
-the rest (`no_feasible_approach`) rather than touch the rack."""
+"""A rack pallet stands at most this much deeper than its node in `bench faults` (its figures stay
+comparable). The Pickup takes deeper ones while the forks carry the pallet type's minimum engagement
+(`executor.core.engagement`: about 0.39 m deeper for an EUR pallet with the example forks) and refuses the
+rest (`no_feasible_approach`) rather than touch the rack."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,6 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--labels", type=names(LABELS), default=["fused"], help="the adaptive mode's labels: fused, geometry, model"
+    )
+    parser.add_argument(
+        "--families", type=names(FAMILIES), default=list(FAMILIES), help="comma-separated: floor, rack, narrow"
     )
 
 
@@ -82,19 +100,43 @@ def start_node(roadmap: Roadmap, node: str) -> str:
     return next(u for u in roadmap.graph.predecessors(pre) if u != node)
 
 
-def _scenarios(runs: int, seed: int) -> list[dict]:
+def _scenarios(runs: int, seed: int, families: list[str]) -> list[dict]:
+    """`runs` seeded pickups, each of a family drawn from `families` (see the module docstring)."""
+    from palletpilot.roadmap import NodeType
+
     roadmap, pallets = example_pallet_nodes()
+    by_family = {
+        "floor": [n for n in pallets if roadmap.node(n).height == 0.0],
+        "rack": [n for n in pallets if roadmap.node(n).height > 0.0],
+    }
+    narrow = load_narrow_aisle()
+    by_family["narrow"] = sorted(
+        n.id for n in narrow.nodes() if n.id.startswith("rack_n") and n.type is NodeType.PALLET
+    )
     rng = np.random.default_rng(seed)
     out = []
     for i in range(runs):
-        node, rack, before = draw_pickup(roadmap, pallets, rng)
+        family = str(rng.choice(families))
+        world = narrow if family == "narrow" else roadmap
+        node = str(rng.choice(by_family[family]))
+        before = start_node(world, node)
+        target = {
+            "node": node,
+            "dx": float(rng.uniform(-ENVELOPE_M, ENVELOPE_M)),
+            "dy": float(rng.uniform(-ENVELOPE_M, ENVELOPE_M)),
+            "dyaw_deg": float(rng.uniform(-ENVELOPE_DEG, ENVELOPE_DEG)),
+            "loaded": bool(rng.random() < 0.5),
+        }
+        neighbours = _neighbours(by_family["narrow"], node, rng) if family == "narrow" else []
         out.append(
             {
                 "index": i,
+                "family": family,
+                "map": NARROW_MAP if family == "narrow" else "warehouse.yaml",
                 "node": node,
                 "start": before,
                 "scenario": {
-                    "map": "warehouse.yaml",
+                    "map": NARROW_MAP if family == "narrow" else "warehouse.yaml",
                     "start": before,
                     "seed": int(rng.integers(2**31)),
                     "camera": {
@@ -110,19 +152,24 @@ def _scenarios(runs: int, seed: int) -> list[dict]:
                         "noise": {"label_noise": True},
                     },
                     "noise": {"localization_xy_sigma": 0.005, "localization_yaw_sigma_deg": 0.1, "slip_sigma": 0.005},
-                    "pallets": [
-                        {
-                            "node": node,
-                            "dx": float(rng.uniform(-0.30, RACK_DEEPER_MAX_M if rack else 0.30)),
-                            "dy": float(rng.uniform(-0.30, 0.30)),
-                            "dyaw_deg": float(rng.uniform(-10.0, 10.0)),
-                            "loaded": bool(rng.random() < 0.5),
-                        }
-                    ],
+                    "pallets": [target, *neighbours],
                 },
             }
         )
     return out
+
+
+def load_narrow_aisle() -> Roadmap:
+    """The narrow aisle's map (`missions/narrow_aisle.yaml`)."""
+    from palletpilot.roadmap import load_map
+
+    return load_map(MISSIONS / NARROW_MAP)
+
+
+def _neighbours(slots: list[str], node: str, rng: np.random.Generator) -> list[dict]:
+    """Pallets in the slots either side of `node` in the narrow aisle's row (at their nodes)."""
+    k = slots.index(node)
+    return [{"node": slots[j], "loaded": bool(rng.random() < 0.5)} for j in (k - 1, k + 1) if 0 <= j < len(slots)]
 
 
 def _one(job: tuple[dict, str]) -> dict:
@@ -140,9 +187,7 @@ def _one(job: tuple[dict, str]) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         mission = Path(tmp) / "m.yaml"
         mission.write_text(
-            yaml.safe_dump(
-                {"map": str(MISSIONS / "warehouse.yaml"), "tasks": [{"type": "pickup", "node": spec["node"]}]}
-            )
+            yaml.safe_dump({"map": str(MISSIONS / spec["map"]), "tasks": [{"type": "pickup", "node": spec["node"]}]})
         )
         t0 = time.perf_counter()
         run = run_simulated(mission, scenario=sc, adapt=adapt, labels=labels, settings=settings)  # type: ignore[arg-type]
@@ -150,11 +195,17 @@ def _one(job: tuple[dict, str]) -> dict:
     task = run.runner.results[0]
     lifted = bool(run.sim.pallets and run.sim.pallets[0].carried)
     success = task.result == "succeeded" and lifted and not run.sim.collisions
-    reason = None if success else (task.reason or ("collision" if run.sim.collisions else "pallet_not_lifted"))
+    reason = None if success else str(task.reason or ("collision" if run.sim.collisions else "pallet_not_lifted"))
+    engagement = task.record.get("engagement", [])
     return {
         "index": spec["index"],
         "mode": mode,
+        "family": spec["family"],
         "node": spec["node"],
+        "manoeuvres": sum("manoeuvre" in t for t in task.record.get("temporary_nodes", [])),
+        "held_back": any(e["enough"] for e in engagement),
+        "refused_engagement": any(not e["enough"] for e in engagement),
+        "contacts": len(run.sim.collisions),
         "success": success,
         "reason": reason,
         "replans": max(task.attempts - 1, 0),
@@ -172,7 +223,8 @@ def _rows(mode: str, labels: list[str]) -> list[str]:
 
 def run(args: argparse.Namespace) -> dict:
     """Run every scenario in each mode and return the figures."""
-    specs = _scenarios(args.runs, args.seed)
+    families = list(getattr(args, "families", FAMILIES))
+    specs = _scenarios(args.runs, args.seed, families)
     modes = [m for mode in args.modes for m in _rows(mode, list(args.labels))]
     jobs = [(s, m) for m in modes for s in specs]
     if args.jobs > 1:
@@ -180,16 +232,45 @@ def run(args: argparse.Namespace) -> dict:
             outcomes = list(pool.map(_one, jobs))
     else:
         outcomes = [_one(j) for j in jobs]
-    result: dict = {"runs": args.runs, "seed": args.seed}
+    result: dict = {
+        "runs": args.runs,
+        "seed": args.seed,
+        "envelope": f"+-{ENVELOPE_M:.2f} m lateral and longitudinal, +-{ENVELOPE_DEG:.0f} deg, floor and rack",
+        "families": dict(collections.Counter(s["family"] for s in specs)),
+    }
+    if "narrow" in families:
+        result["narrow_aisle"] = (
+            f"{NARROW_MAP}: {NARROW_AISLE_WIDTH_M:.1f} m from rack to rack, racks {NARROW_RACK_DEPTH_M:.1f} m deep"
+        )
     for mode in modes:
-        mine = [o for o in outcomes if o["mode"] == mode]
-        ok = [o for o in mine if o["success"]]
-        result[mode] = {
-            "success_rate": round(len(ok) / len(mine), 4),
-            "mean_replans": round(float(np.mean([o["replans"] for o in mine])), 3),
-            "mean_task_s": round(float(np.mean([o["task_s"] for o in mine])), 2),
-            "mean_wall_s": round(float(np.mean([o["wall_s"] for o in mine])), 2),
-            "failures": dict(collections.Counter(o["reason"] for o in mine if not o["success"])),
-            "failed_runs": [o["index"] for o in mine if not o["success"]][:20],
-        }
+        result[mode] = _figures([o for o in outcomes if o["mode"] == mode], families)
     return result
+
+
+def _figures(mine: list[dict], families: list[str]) -> dict:
+    """One mode's figures over its outcomes."""
+    ok = [o for o in mine if o["success"]]
+    per_family = {}
+    for family in families:
+        runs = [o for o in mine if o["family"] == family]
+        if runs:
+            per_family[family] = round(sum(o["success"] for o in runs) / len(runs), 4)
+    return {
+        "success_rate": round(len(ok) / len(mine), 4),
+        "by_family": per_family,
+        "manoeuvres": {
+            "planned": sum(o["manoeuvres"] for o in mine),
+            "runs": sum(o["manoeuvres"] > 0 for o in mine),
+            "runs_succeeded": sum(o["manoeuvres"] > 0 and o["success"] for o in mine),
+        },
+        "engagement": {
+            "held_back": sum(o["held_back"] for o in mine),
+            "refused": sum(o["refused_engagement"] for o in mine),
+        },
+        "contacts": sum(o["contacts"] for o in mine),
+        "mean_replans": round(float(np.mean([o["replans"] for o in mine])), 3),
+        "mean_task_s": round(float(np.mean([o["task_s"] for o in mine])), 2),
+        "mean_wall_s": round(float(np.mean([o["wall_s"] for o in mine])), 2),
+        "failures": dict(collections.Counter(str(o["reason"]) for o in mine if not o["success"])),
+        "failed_runs": [o["index"] for o in mine if not o["success"]][:20],
+    }

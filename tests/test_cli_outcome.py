@@ -23,6 +23,18 @@ def test_a_pickup_line_says_how_far_off_the_pallet_was_the_replans_and_the_time(
     assert "found 195 mm sideways, 120 mm along, 5.9 deg off its node; 1 re-plan(s), 2 estimate(s)" in line
 
 
+def test_a_pickup_line_names_its_manoeuvres_and_their_segments():
+    task = TaskResult(index=0, type="pickup", node="rack_n2", result=Outcome.SUCCEEDED, attempts=2)
+    task.start_s, task.end_s = 0.0, 89.5
+    task.record = {
+        "estimates": [_estimate(302.8, -199.6, -10.1, False), _estimate(-3.7, -2.7, 0.0, True)],
+        "temporary_nodes": [
+            {"pallet": "rack_n2~1", "manoeuvre": {"segments": 2, "directions": ["reverse", "forward"]}}
+        ],
+    }
+    assert task_line(task).endswith("; 1 re-plan(s), 2 estimate(s), 1 manoeuvre(s) of 2 segments")
+
+
 def test_other_tasks_give_their_outcome_reason_and_time_without_estimates():
     task = TaskResult(index=1, type="delivery", node="drop", result=Outcome.FAILED, reason=None)
     task.start_s, task.end_s = 80.0, 100.0

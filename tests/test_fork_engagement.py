@@ -5,6 +5,7 @@ inside the fork tips, with margin); otherwise the failure says how deep the tips
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -47,3 +48,40 @@ def test_a_rack_pallet_200_mm_deeper_than_its_node_is_taken(tmp_path: Path) -> N
     engagement = record["engagement"][-1]
     assert engagement["enough"] and engagement["required_mm"] == pytest.approx(800.0)
     assert 850.0 < engagement["reach_mm"] < 1100.0, engagement
+
+
+def test_a_turned_pallet_is_held_back_until_the_masts_leading_corner_clears_the_beam() -> None:
+    # Issue 40, the envelope at +-15 deg: a pallet 0.09 m deeper and 15 deg turned needs no hold-back by the
+    # heels alone (0.10 m allowed), but the turned mast's front corner, 0.55 m to the side, leads by
+    # 0.55 sin 15 deg = 0.14 m: without more hold-back it met the rack's front beam in the simulator.
+    from types import SimpleNamespace
+
+    from palletpilot.control.vehicle import load_vehicle
+    from palletpilot.executor.core.behaviour import Settings
+    from palletpilot.executor.core.engagement import rack_limited_pose
+    from palletpilot.roadmap import Node, NodeType
+
+    node = Node("r", NodeType.PALLET, SE2(0.0, 0.0, 0.0), height=1.0, pre_pallet="r_pre")
+    params = load_vehicle(bundled_path("missions", "forklift.yaml"))
+    ctx = SimpleNamespace(
+        roadmap=SimpleNamespace(node=lambda _id: node),
+        task=SimpleNamespace(node="r"),
+        settings=Settings(),
+        params=params,
+        forks=FORKS,
+        pallet_type=PalletType.eur(),
+        record={},
+        log=lambda *a, **k: None,
+    )
+    straight = rack_limited_pose(ctx, SE2(0.09, 0.0, 0.0))  # type: ignore[arg-type]
+    assert straight.x == pytest.approx(0.09)  # the heels' 0.10 m allowance covers it
+    turned = rack_limited_pose(ctx, SE2(0.09, 0.0, math.radians(15.0)))  # type: ignore[arg-type]
+    body = params.body
+    corner = turned.x + body.front_x * math.cos(turned.yaw) + 0.5 * body.width * abs(math.sin(turned.yaw))
+    assert corner <= Settings.rack_overrun + body.front_x + 1e-6  # no further than the straight mast's front
+    assert turned.x < 0.09 - 0.1  # held back along the pallet's axis by about 0.14 m
+    # Deeper still, the forks would carry too little: the refusal says the turn took its share.
+    from palletpilot.executor.core.errors import TaskFailed
+
+    with pytest.raises(TaskFailed, match=r"may go 100 mm past it \(146 mm less turned \+15 deg\)"):
+        rack_limited_pose(ctx, SE2(0.35, 0.0, math.radians(15.0)))  # type: ignore[arg-type]

@@ -161,15 +161,36 @@ def test_replan_joins_the_new_node_further_back_when_the_nearest_gives_no_curve(
 
 def test_no_feasible_approach_names_how_many_nodes_were_tried(tmp_path):
     # n1..n3 all stand too close to the new pre-pallet node; `s` (8 m back) would do, but lies beyond
-    # the bound (Settings.replan_back_nodes = 3).
+    # the bound (Settings.replan_back_nodes = 3). A rack slot beside the aisle (`side`, its rack's front
+    # 1.0 m left of the aisle) leaves the truck no room at the new pre-pallet pose, so no manoeuvre either.
     map_path = aisle_map(tmp_path, [0.6, 0.8, 1.0])
+    doc = yaml.safe_load(map_path.read_text())
+    doc["nodes"] += [
+        {"id": "side_pre", "type": "pre_pallet", "x": 8.0, "y": -1.48, "yaw_deg": 90},
+        {"id": "side", "type": "pallet", "x": 8.0, "y": 1.02, "yaw_deg": 90, "pre_pallet": "side_pre", "height": 1.0},
+    ]
+    doc["edges"] += [{"from": "side_pre", "to": "side"}, {"from": "side", "to": "side_pre", "direction": "reverse"}]
+    map_path.write_text(yaml.safe_dump(doc))
     r = run(tmp_path, map_path, "s", [MISPLACED], [{"type": "pickup", "node": "slot"}])
     result = r.runner.results[0]
     assert not r.success and result.reason == "no_feasible_approach"
-    assert "tried 3 nodes back along the route (at most 3)" in (result.message or "")
-    assert all(f"from '{n}'" in (result.message or "") for n in ("n1", "n2", "n3"))
-    assert "from 's'" not in (result.message or "")
+    message = result.message or ""
+    assert "tried 3 nodes back along the route (at most 3)" in message
+    assert all(f"from '{n}'" in message for n in ("n1", "n2", "n3"))
+    assert "from 's'" not in message
+    assert "a manoeuvre from 'n1'" in message and "the rack at 'side'" in message
     assert abs(r.sim.speed) < 1e-3 and r.sim.collisions == [] and not r.sim.pallets[0].carried
+
+
+def test_a_manoeuvre_takes_the_pallet_when_no_node_back_gives_a_curve(tmp_path):
+    # As above without the rack: the truck backs up and drives forward into the new pre-pallet node.
+    map_path = aisle_map(tmp_path, [0.6, 0.8, 1.0])
+    r = run(tmp_path, map_path, "s", [MISPLACED], [{"type": "pickup", "node": "slot"}])
+    assert r.success and r.sim.pallets[0].carried and r.sim.collisions == []
+    planned = [e for e in events(tmp_path) if e["event"] == "manoeuvre_planned"]
+    assert planned and planned[0]["node"] == "n1" and "reverse" in planned[0]["directions"]
+    assert report_task(tmp_path)["temporary_nodes"][0]["nodes_tried"] == 4
+    assert r.runner.ctx.memory.at_node == "n1" and not any(n.temporary for n in r.runner.ctx.roadmap.nodes())
 
 
 # -- return_on_failure ---------------------------------------------------------------------------

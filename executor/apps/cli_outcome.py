@@ -32,17 +32,20 @@ EXIT_INTERNAL = 70
 def task_line(task: Any) -> str:
     """One finished task as a shift lead reads it (a `TaskResult`): type, node, outcome and reason, how long it
     took; for a Pickup how far off its node the pallet was found first (lateral, along, yaw), the re-plans and
-    the estimates."""
+    the estimates, and the manoeuvres (their segments) when a re-plan needed one."""
     why = f" ({task.reason})" if task.reason else ""
     line = f"{task.type:9s} {task.node or '':14s} {task.result}{why} in {task.end_s - task.start_s:.1f} s"
     estimates = task.record.get("estimates", [])
     if estimates:
         first = estimates[0]
-        replans = len(task.record.get("temporary_nodes", []))
+        replans = task.record.get("temporary_nodes", [])
         line += (
             f": pallet found {abs(first['lateral_mm']):.0f} mm sideways, {abs(first['longitudinal_mm']):.0f} mm along, "
-            f"{abs(first['yaw_deg']):.1f} deg off its node; {replans} re-plan(s), {len(estimates)} estimate(s)"
+            f"{abs(first['yaw_deg']):.1f} deg off its node; {len(replans)} re-plan(s), {len(estimates)} estimate(s)"
         )
+        moves = [r["manoeuvre"]["segments"] for r in replans if "manoeuvre" in r]
+        if moves:  # a re-plan no single curve reached: forward and reverse moves
+            line += f", {len(moves)} manoeuvre(s) of {'+'.join(map(str, moves))} segments"
     return line
 
 

@@ -31,6 +31,7 @@ from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletEstimate
 from palletpilot.perception.specs import ForkGeometry, PalletType
 from palletpilot.roadmap import Overlay, Planner, Roadmap
+from palletpilot.roadmap.manoeuvre import Manoeuvre
 from palletpilot.roadmap.planner import Route
 
 
@@ -40,7 +41,9 @@ class TemporaryNodes:
 
     `heading` is the forklift's yaw at `before` when the curve was made; the same record rebuilds the
     same nodes and curves on a resume. `via`: the roadmap nodes the truck backs along to reach `before`,
-    from the node it backed off to (first) to `before` (last); empty means `before` alone.
+    from the node it backed off to (first) to `before` (last); empty means `before` alone. `manoeuvre`: the
+    forward and reverse moves from `before` to the pre-pallet node when no single curve joins them
+    (`executor.core.manoeuvre`).
     """
 
     k: int
@@ -51,6 +54,7 @@ class TemporaryNodes:
     before: str
     heading: float
     via: tuple[str, ...] = ()
+    manoeuvre: Manoeuvre | None = None
 
     @property
     def back_path(self) -> tuple[str, ...]:
@@ -69,6 +73,7 @@ class TemporaryNodes:
             "before": self.before,
             "heading": self.heading,
             "via": list(self.via),
+            "manoeuvre": self.manoeuvre.to_json() if self.manoeuvre is not None else None,
         }
 
     @classmethod
@@ -83,6 +88,7 @@ class TemporaryNodes:
             str(doc["before"]),
             float(doc["heading"]),
             tuple(str(n) for n in doc.get("via", ())),
+            Manoeuvre.from_json(doc["manoeuvre"]) if doc.get("manoeuvre") else None,
         )
 
 

@@ -12,6 +12,7 @@ from palletpilot.control.errors import ControlError
 from palletpilot.control.follower import FollowerStatus
 from palletpilot.executor.core.behaviour import Behaviour, Context
 from palletpilot.executor.core.errors import CONTROLLER_ERROR, NO_ROUTE, Reason, TaskFailed
+from palletpilot.executor.core.manoeuvre import exit_route
 from palletpilot.executor.core.mission import ChargeTask
 from palletpilot.roadmap import Direction, NodeType, RoadmapError, reference_path
 from palletpilot.roadmap.planner import Route
@@ -159,10 +160,7 @@ class ReturnToRoadmap(FollowRoute):
     def _route(ctx: Context) -> Route:
         if not ctx.roadmap.node(ctx.memory.pre_node).temporary or ctx.memory.node_before is None:
             return Route([ctx.memory.pre_node], [])
-        return Route(
-            [ctx.memory.pre_node, ctx.memory.node_before],
-            [ctx.roadmap.edge(ctx.memory.pre_node, ctx.memory.node_before)],
-        )
+        return exit_route(ctx)  # the edge back, or a re-plan's manoeuvre driven the other way
 
 
 class Charge(Behaviour):

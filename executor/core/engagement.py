@@ -14,7 +14,8 @@ allows (`pickup_tolerances`); elsewhere it keeps the geometry's (the tips past t
 so a pallet the truck can reach fully is still re-planned to until it is. Before entering,
 `engagement_problems` checks the depth the forks will reach against the estimate (`SafetyCheck`).
 
-Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`.
+Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`,
+`forks_outside_pockets`.
 """
 
 from __future__ import annotations
@@ -49,7 +50,15 @@ def _at_rack_limit(ctx: Context) -> bool:
     if original.height <= 0.0 or not ctx.memory.pallet_node or ctx.memory.pallet_node == original.id:
         return False
     rel = original.pose.inv() @ ctx.roadmap.node(ctx.memory.pallet_node).pose
-    return rel.x >= ctx.settings.rack_overrun - _AT_LIMIT_M
+    return _mast_reach(ctx, rel) >= ctx.settings.rack_overrun - _AT_LIMIT_M
+
+
+def _mast_reach(ctx: Context, rel: SE2) -> float:
+    """How far (m) past the rack node the truck at `rel` (its pose in the node's frame) goes, measured where
+    the mast meets the beam: the heels' x, plus what the leading front corner of a turned mast gains on the
+    straight mast's front."""
+    body = ctx.params.body
+    return rel.x + body.front_x * (math.cos(rel.yaw) - 1.0) + 0.5 * body.width * abs(math.sin(rel.yaw))
 
 
 def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
@@ -65,7 +74,9 @@ def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
 
 def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     """The corrected pallet node pose (world), held back at a rack so the heels never pass the original
-    node by more than `Settings.rack_overrun` (m) along its heading; the forks then enter less deep.
+    node by more than `Settings.rack_overrun` (m) along its heading (less where the truck stands turned: the
+    mast's leading front corner goes no further than the straight mast's front would); the forks then
+    enter less deep.
 
     Raises `TaskFailed(no_feasible_approach)` when, held back, the fork tips would not reach the pallet
     type's minimum engagement (with the longitudinal margin), naming how deep they could reach (mm).
@@ -75,7 +86,7 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     if original.height <= 0.0:
         return pallet_node_pose
     rel = original.pose.inv() @ pallet_node_pose
-    excess = rel.x - ctx.settings.rack_overrun
+    excess = _mast_reach(ctx, rel) - ctx.settings.rack_overrun
     if excess <= 0.0:
         return pallet_node_pose
     back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
@@ -95,10 +106,12 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     }
     ctx.memory.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
     if reach - margin < need:
+        lead = _mast_reach(ctx, rel) - rel.x
+        turned = f" ({lead * 1e3:.0f} mm less turned {math.degrees(rel.yaw):+.0f} deg)" if lead > _AT_LIMIT_M else ""
         raise TaskFailed(
             NO_FEASIBLE_APPROACH,
             f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
-            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it before the mast meets the rack, and the fork "
+            f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it{turned} before the mast meets the rack, and the fork "
             f"tips could then reach {reach * 1e3:.0f} mm into the pallet; it needs {need * 1e3:.0f} mm ({why}) "
             f"and {margin * 1e3:.0f} mm margin",
         )
@@ -124,3 +137,28 @@ def engagement_problems(forks: ForkGeometry, pallet: PalletType, T_pallet_forkli
         f"the fork tips would reach {depth * 1e3:.0f} mm into the pallet, it needs {need * 1e3:.0f} mm ({why}) "
         f"and {margin * 1e3:.0f} mm margin"
     ]
+
+
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
+    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
+    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
+    tip's depth. Both poses are in the world frame (SE2)."""
+    forks, pallet = ctx.forks, ctx.pallet_type
+    T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
+    depth = min(pallet.length, forks.length)
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
+    problems = []
+    for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
+        worst = 0.0
+        for x_pallet in (0.0, depth):
+            # the fork's centre line, a line along the forklift's x axis, at this depth in the pallet
+            c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
+            origin = T_pallet_forklift.apply([0.0, fork_y])
+            if abs(c) < 1e-6:
+                worst = math.inf
+                break
+            y = origin[1] + (x_pallet - origin[0]) * s_ / c
+            worst = max(worst, abs(y - pocket_y) - half_free)
+        if worst > 0.0:
+            problems.append(f"the {name} fork would pass {worst * 1e3:.0f} mm beside its pocket")
+    return problems

@@ -6,8 +6,8 @@ commanded while perception runs. A result computed from a frame older than the v
 (`ctx.memory.last_motion_s`) is never used: the frame is grabbed again.
 
 Public API: `CalibrateCamera`, `EstimatePallet`, `Replan`, `SafetyCheck`, `add_temporary_nodes`,
-`approach_curve`, `approach_route`, `nodes_back`, `forks_outside_pockets` (the tolerances and the rack's
-limit: `executor.core.engagement`).
+`approach_curve`, `approach_route`, `nodes_back`, and from `executor.core.engagement` (the tolerances and
+the rack's limit) `forks_outside_pockets`. A re-plan's manoeuvre: `executor.core.manoeuvre`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,12 @@ from typing import Any
 
 from palletpilot.executor.core.behaviour import Behaviour, Context, TemporaryNodes
 from palletpilot.executor.core.calibration_trust import LAST_GOOD_SOURCE, note_trusted, trusted_axes_only
-from palletpilot.executor.core.engagement import engagement_problems, pickup_tolerances, rack_limited_pose
+from palletpilot.executor.core.engagement import (
+    engagement_problems,
+    forks_outside_pockets,
+    pickup_tolerances,
+    rack_limited_pose,
+)
 from palletpilot.executor.core.entry import MIN_SEEN, RECHECK_S, entry_volume_at
 from palletpilot.executor.core.errors import (
     CALIBRATION_FAILED,
@@ -30,6 +35,14 @@ from palletpilot.executor.core.errors import (
     TaskFailed,
 )
 from palletpilot.executor.core.jobs import Job
+from palletpilot.executor.core.manoeuvre import (
+    add_manoeuvre_edges,
+    check_curve_clear,
+    manoeuvre_nodes,
+    manoeuvre_planner,
+    manoeuvre_record,
+    with_manoeuvre,
+)
 from palletpilot.geometry import SE2, SE3, angle_diff
 from palletpilot.perception.alignment import check_alignment
 from palletpilot.perception.calibration import CalibrationError
@@ -41,6 +54,7 @@ from palletpilot.perception.specs import ENTRY_GAP_M, node_pose_for_pallet, pall
 from palletpilot.perception.view import pickup_view
 from palletpilot.roadmap import Curve, Direction, Edge, Node, NodeType, RoadmapError, Route, connect
 from palletpilot.roadmap.graph import TANGENT_TOLERANCE_RAD
+from palletpilot.roadmap.manoeuvre import Manoeuvre
 
 STANDING_SPEED = 1e-3
 """m/s: below this the vehicle stands (frames for perception are taken only then)."""
@@ -387,7 +401,7 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
     assert ctx.memory.overlay is not None
     original = ctx.roadmap.node(ctx.memory.node_task().node)
     original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.memory.node_task().node))
-    if curve is None:
+    if curve is None and spec.manoeuvre is None:
         try:
             curve = approach_curve(ctx, spec)
         except RoadmapError as exc:
@@ -398,9 +412,14 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
     ov.add_node(Node(spec.pre, NodeType.PRE_PALLET, spec.pre_pose))
     ov.add_node(Node(spec.pallet, NodeType.PALLET, spec.pallet_pose, height=original.height, pre_pallet=spec.pre))
     entry_speed = ctx.roadmap.edge(original_pre.id, original.id).speed_limit
-    edges = [
-        ov.add_edge(Edge(spec.before, spec.pre, curve, Direction.FORWARD, 0.5)),
-        ov.add_edge(Edge(spec.pre, spec.before, curve.reversed(), Direction.REVERSE, 0.5)),
+    if curve is not None:
+        edges = [
+            ov.add_edge(Edge(spec.before, spec.pre, curve, Direction.FORWARD, 0.5)),
+            ov.add_edge(Edge(spec.pre, spec.before, curve.reversed(), Direction.REVERSE, 0.5)),
+        ]
+    else:
+        edges = add_manoeuvre_edges(ctx, spec)
+    edges += [
         ov.add_edge(ctx.roadmap.line_edge(spec.pre, spec.pallet, Direction.FORWARD, entry_speed)),
         ov.add_edge(ctx.roadmap.line_edge(spec.pallet, spec.pre, Direction.REVERSE, entry_speed)),
     ]
@@ -409,7 +428,7 @@ def add_temporary_nodes(ctx: Context, spec: TemporaryNodes, curve: Curve | None 
         "replanned",
         pallet=spec.pallet,
         pre_pallet=spec.pre,
-        curve=curve.kind,
+        curve=curve.kind if curve is not None else "manoeuvre",
         joined_to=spec.before,
         via=list(spec.back_path),
     )
@@ -474,7 +493,7 @@ def approach_route(ctx: Context) -> Route:
     if spec is None:
         nodes = [ctx.memory.node_before or "", ctx.memory.pre_node]
     else:
-        path = spec.back_path
+        path = [*spec.back_path, *manoeuvre_nodes(spec)]
         first = path.index(ctx.memory.at_node) if ctx.memory.at_node in path else 0
         nodes = [*path[first:], spec.pre]
     return Route(nodes, [ctx.roadmap.edge(a, b) for a, b in itertools.pairwise(nodes)])
@@ -484,9 +503,28 @@ class Replan(Behaviour):
     """Add temporary pallet and pre-pallet nodes from the estimate, joined by a drivable curve to the node
     the truck backed off to or, when no curve fits from there, to a node further back along the route
     (`nodes_back`, at most `Settings.replan_back_nodes` nodes tried); the approach then backs the truck
-    to that node first (`approach_route`), and the return to the roadmap leaves through it."""
+    to that node first (`approach_route`), and the return to the roadmap leaves through it. When no node
+    gives a curve, a manoeuvre from the node the truck backed off to (`executor.core.manoeuvre`, planned
+    off the loop); when none fits either, `no_feasible_approach` saying what was tried."""
+
+    def start(self, ctx: Context) -> None:
+        self.job: Job[Manoeuvre] | None = None
+        self.spec: TemporaryNodes | None = None
+        self.failures: list[str] = []
 
     def update(self, ctx: Context) -> str | None:
+        if self.job is None:
+            return self._curves(ctx)
+        if not self.job.poll(ctx.clock_now()):
+            return None
+        job, self.job = self.job, None
+        assert self.spec is not None
+        spec = with_manoeuvre(ctx, self.spec, job, self.failures)  # or `no_feasible_approach`
+        self._add(ctx, spec, None, tried=len(self.failures) + 1)
+        return "done"
+
+    def _curves(self, ctx: Context) -> str | None:
+        """Try one curve from each node back; else start the manoeuvre's search (None while it runs)."""
         assert ctx.memory.estimated_pallet is not None and ctx.memory.overlay is not None
         original = ctx.roadmap.node(ctx.memory.node_task().node)
         original_pre = ctx.roadmap.node(ctx.roadmap.pre_pallet_of(ctx.memory.node_task().node))
@@ -494,7 +532,7 @@ class Replan(Behaviour):
         new_pallet_pose = rack_limited_pose(ctx, node_pose_for_pallet(ctx.memory.estimated_pallet))
         k = ctx.memory.attempts
         limit = max(1, ctx.settings.replan_back_nodes)
-        failures: list[str] = []
+        specs = []
         for before, heading, path in nodes_back(ctx, ctx.memory.node_before or "", ctx.memory.heading, limit):
             spec = TemporaryNodes(
                 k=k,
@@ -506,40 +544,40 @@ class Replan(Behaviour):
                 heading=heading,
                 via=path if len(path) > 1 else (),
             )
+            specs.append(spec)
             try:
                 curve = approach_curve(ctx, spec)
+                check_curve_clear(ctx, spec, curve, ctx.memory.estimated_pallet.to_se2())  # the static obstacles
             except RoadmapError as exc:
-                failures.append(f"from '{before}': {exc}")
+                self.failures.append(f"from '{before}': {exc}")
                 ctx.log("approach_infeasible", node=before, error=str(exc))
                 continue
-            self._add(ctx, spec, curve, tried=len(failures) + 1)
+            self._add(ctx, spec, curve, tried=len(self.failures) + 1)
             return "done"
-        n = len(failures)
-        raise TaskFailed(
-            NO_FEASIBLE_APPROACH,
-            f"no feasible approach to the estimated pallet: tried {n} node{'' if n == 1 else 's'} back along "
-            f"the route (at most {limit}): " + "; ".join(failures),
-        )
+        self.spec = specs[0]  # the node the truck stands at: the manoeuvre starts there
+        plan = manoeuvre_planner(ctx, self.spec, ctx.memory.estimated_pallet.to_se2())
+        self.job = ctx.jobs.submit("manoeuvre", plan)
+        return None
 
     @staticmethod
-    def _add(ctx: Context, spec: TemporaryNodes, curve: Curve, tried: int) -> None:
+    def _add(ctx: Context, spec: TemporaryNodes, curve: Curve | None, tried: int) -> None:
         edges = add_temporary_nodes(ctx, spec, curve)
         ctx.memory.pallet_node, ctx.memory.pre_node, ctx.memory.node_before = spec.pallet, spec.pre, spec.before
         pose = spec.pallet_pose
-        ctx.memory.record.setdefault("temporary_nodes", []).append(
-            {
-                "pallet": spec.pallet,
-                "pre_pallet": spec.pre,
-                "x_m": round(pose.x, 4),
-                "y_m": round(pose.y, 4),
-                "yaw_deg": round(math.degrees(pose.yaw), 3),
-                "joined_to": spec.before,
-                "nodes_tried": tried,
-                "backs_along": list(spec.back_path),
-                "curve": curve.kind,
-                "edges": [e.name for e in edges],
-            }
-        )
+        entry: dict[str, Any] = {
+            "pallet": spec.pallet,
+            "pre_pallet": spec.pre,
+            "x_m": round(pose.x, 4),
+            "y_m": round(pose.y, 4),
+            "yaw_deg": round(math.degrees(pose.yaw), 3),
+            "joined_to": spec.before,
+            "nodes_tried": tried,
+            "backs_along": list(spec.back_path),
+            "curve": curve.kind if curve is not None else "manoeuvre",
+            "edges": [e.name for e in edges],
+            **manoeuvre_record(spec),
+        }
+        ctx.memory.record.setdefault("temporary_nodes", []).append(entry)
 
 
 class SafetyCheck(Behaviour):
@@ -567,28 +605,3 @@ class SafetyCheck(Behaviour):
             if problems:
                 raise TaskFailed(SAFETY_CHECK_FAILED, "; ".join(problems))
         return "done"
-
-
-def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
-    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
-    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
-    tip's depth. Both poses are in the world frame (SE2)."""
-    forks, pallet = ctx.forks, ctx.pallet_type
-    T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
-    depth = min(pallet.length, forks.length)
-    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
-    problems = []
-    for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
-        worst = 0.0
-        for x_pallet in (0.0, depth):
-            # the fork's centre line, a line along the forklift's x axis, at this depth in the pallet
-            c, s_ = math.cos(T_pallet_forklift.yaw), math.sin(T_pallet_forklift.yaw)
-            origin = T_pallet_forklift.apply([0.0, fork_y])
-            if abs(c) < 1e-6:
-                worst = math.inf
-                break
-            y = origin[1] + (x_pallet - origin[0]) * s_ / c
-            worst = max(worst, abs(y - pocket_y) - half_free)
-        if worst > 0.0:
-            problems.append(f"the {name} fork would pass {worst * 1e3:.0f} mm beside its pocket")
-    return problems

@@ -9,7 +9,8 @@ vehicle.
 The adaptive Pickup follows ARCHITECTURE.md: drive to the pre-pallet node, calibrate, raise the forks,
 estimate the pallet; when misaligned, lower the forks, back off to the node before the pre-pallet
 node, add temporary pallet and pre-pallet nodes from the estimate joined by a feasible curve (to that
-node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`), approach
+node, or when none fits, to one further back along the route: `Settings.replan_back_nodes`; when no
+node gives one curve, a manoeuvre of forward and reverse moves: `executor.core.manoeuvre`), approach
 the new pre-pallet node (backing to the further node first) and repeat (at most `max_attempts`
 estimates); then the proximity safety check, enter, lift, reverse out, return to the roadmap (through
 the node the temporary nodes are joined to) and remove the temporary nodes. `--no-adapt` does not
@@ -49,6 +50,7 @@ from palletpilot.executor.core.errors import (
     VEHICLE_FAULT,
     TaskFailed,
 )
+from palletpilot.executor.core.manoeuvre import exit_route
 from palletpilot.executor.core.mission import WaitTask
 from palletpilot.executor.core.pickup import CalibrateCamera, EstimatePallet, Replan, SafetyCheck, approach_route
 from palletpilot.executor.ports.vocabulary import Outcome
@@ -320,7 +322,7 @@ def behaviours(task_type: str, settings: Settings) -> dict[str, Callable[[], Beh
             table.update(
                 {
                     "lower_forks": lambda: SetForks(lambda ctx: ctx.params.mast.travel_height_empty),
-                    "back_off": lambda: FollowRoute(before, via=_edge_route(pre, before)),
+                    "back_off": lambda: FollowRoute(before, via=exit_route),
                     "replan": Replan,
                     "approach": lambda: FollowRoute(pre, via=approach_route),
                     "return_to_roadmap": ReturnToRoadmap,

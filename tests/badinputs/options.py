@@ -62,6 +62,12 @@ CASES: list[Case] = [
         "--modes: unknown 'fast' (known: adaptive,adaptive_truth,no_adapt,paper)",
     ),
     Case("opt_bench_missions_modes_empty", bench("missions", "--modes", ","), 2, "--modes: empty list"),
+    Case(
+        "opt_bench_missions_families_unknown",
+        bench("missions", "--families", "floor,wide"),
+        2,
+        "--families: unknown 'wide' (known: floor,rack,narrow)",
+    ),
     Case("opt_bench_safety_runs_0", bench("safety", "--runs", "0"), 2, "--runs: must be an integer >= 1"),
     Case("opt_bench_safety_jobs_0", bench("safety", "--jobs", "0"), 2, "--jobs: must be an integer in 1..256"),
     Case(
