@@ -57,20 +57,21 @@ def test_a_turned_pallet_is_held_back_until_the_masts_leading_corner_clears_the_
     from types import SimpleNamespace
 
     from palletpilot.control.vehicle import load_vehicle
-    from palletpilot.executor.core.behaviour import Settings
+    from palletpilot.executor.core.behaviour import Settings, TaskMemory
     from palletpilot.executor.core.engagement import rack_limited_pose
+    from palletpilot.executor.core.mission import PickupTask
     from palletpilot.roadmap import Node, NodeType
 
     node = Node("r", NodeType.PALLET, SE2(0.0, 0.0, 0.0), height=1.0, pre_pallet="r_pre")
     params = load_vehicle(bundled_path("missions", "forklift.yaml"))
+    memory = TaskMemory(at_node="r_pre", heading=0.0, task=PickupTask(type="pickup", node="r"))
     ctx = SimpleNamespace(
         roadmap=SimpleNamespace(node=lambda _id: node),
-        task=SimpleNamespace(node="r"),
+        memory=memory,
         settings=Settings(),
         params=params,
         forks=FORKS,
         pallet_type=PalletType.eur(),
-        record={},
         log=lambda *a, **k: None,
     )
     straight = rack_limited_pose(ctx, SE2(0.09, 0.0, 0.0))  # type: ignore[arg-type]

@@ -6,6 +6,7 @@ loaded rack pallet at 1.8 m in the narrow aisle (`missions/narrow_aisle.yaml`), 
 0.20 m short and turned -10 deg, which no single curve from the aisle reaches.
 """
 
+import dataclasses
 import json
 import math
 import shutil
@@ -159,8 +160,8 @@ def test_the_narrow_aisle_pallet_is_picked_after_a_manoeuvre(tmp_path):
         saved = next(cp["ctx"] for cp in book.checkpoints() if cp.get("state") == "approach")
     spec = TemporaryNodes.from_json(saved["temporary"][0])
     assert spec.manoeuvre is not None and len(spec.manoeuvre.segments) == planned[0]["segments"]
-    ctx = r.runner.ctx
-    ctx.memory.task, ctx.memory.temporary, ctx.log = r.runner.mission.tasks[0], [], lambda *a, **k: None
+    ctx = dataclasses.replace(r.runner.ctx, log=lambda *a, **k: None)
+    ctx.memory.task, ctx.memory.temporary = r.runner.mission.tasks[0], []
     with ctx.roadmap.overlay() as ov:
         ctx.memory.overlay = ov
         assert [e.name for e in add_temporary_nodes(ctx, spec)] == record["edges"]
