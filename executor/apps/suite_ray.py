@@ -180,14 +180,16 @@ def run_on_ray(
             k, retried = running.pop(ref)
             try:
                 doc, data = ray.get(ref)
-            except RayTaskError as exc:  # the task raised (run_case never does): a bug, not retried
-                results[k] = _error(specs[k], "the run raised", exc, retried)
-            except RayError as exc:  # the worker or its node died: once more, elsewhere
-                if retried:
-                    results[k] = _error(specs[k], "the run's worker died twice", exc, retried)
-                else:
+            except RayError as exc:
+                # Ray itself failed the task (its worker or node died, or an argument could not be fetched:
+                # a RayTaskError whose cause is a RayError, such as OwnerDiedError): once more, elsewhere.
+                # A task that raised (run_case never does) is a bug, not retried.
+                system = not isinstance(exc, RayTaskError) or isinstance(exc.cause, RayError)
+                if system and not retried:
                     running[task.remote(specs[k], shared)] = (k, True)
                     continue
+                what = "the run's worker died twice" if system else "the run raised"
+                results[k] = _error(specs[k], what, exc, retried)
             else:
                 results[k] = _received(doc, data, report, retried)
             progress(results[k], len(results))
