@@ -27,9 +27,10 @@ Method:
    pallet's axes, the front is the near end along x (`front_percentile`), the lateral centre the
    middle (`side_percentile` to its complement) of the points within `front_band_m` of the front.
    A rough point (centimetres), it only decides which instance is meant.
-4. **Selection.** The instance whose entry-face centre is nearest to the expected pallet origin,
-   if inside the gate (`InstanceConfig.gate`: the misplacement envelope plus a margin on each axis,
-   across never as far as a lane neighbour's near edge); else none, and `InstanceSelection.miss_message`
+4. **Selection.** Of the instances whose entry-face centre is inside the gate around the expected
+   pallet origin, the largest (a short pallet's deck scraps can stand nearer to it than its front);
+   the gate is `InstanceConfig.gate` (the misplacement envelope plus a margin on each axis, across never
+   as far as a lane neighbour's near edge). With none inside, none, and `InstanceSelection.miss_message`
    says how far the nearest pallet seen is from where it was expected.
 
 Limits: pallets whose faces touch with no depth jump between them (no gap, one plane) are one
@@ -141,7 +142,7 @@ class PalletInstance:
 class InstanceSelection:
     """The instances of a frame and the one expected.
 
-    `instances`: nearest to `expected` first; `target`: the nearest if inside `gate`, else None.
+    `instances`: nearest to `expected` first; `target`: the largest inside `gate`, else None.
     `target_mask` (H, W): the pixels to fit (the target's, with the pallet-labelled pixels next to
     it on depth jumps; empty without a target); `foreign_mask` (H, W): the other instances' pixels,
     grown by the margin, never the target's: left out of the fit altogether.
@@ -338,8 +339,12 @@ def select_instance(
     *,
     gate: Gate,
 ) -> InstanceSelection:
-    """The instances of `find_instances` and the one nearest to `expected` (forklift frame) if inside `gate`
-    (`InstanceConfig.gate` of the misplacement envelope).
+    """The instances of `find_instances` and the largest of those inside `gate` around `expected` (forklift
+    frame; `InstanceConfig.gate` of the misplacement envelope), none if none is.
+
+    The largest, not the nearest: a pallet standing short has scraps of its own deck (split off by the
+    depth jumps of the board gaps) nearer to the expected entry face than its own front; a neighbour stays
+    outside the gate.
 
     `target_mask` holds the selected instance's pixels and the pixels of `mask` next to them (on the
     depth jumps at its edges), minus `foreign_mask`: the other instances' pixels grown by
@@ -347,7 +352,8 @@ def select_instance(
     """
     cfg = config or InstanceConfig()
     instances = find_instances(frame, T_forklift_camera, mask, expected, edges, cfg)
-    target = instances[0] if instances and gate.admits(instances[0].offset) else None
+    inside = [inst for inst in instances if gate.admits(inst.offset)]
+    target = max(inside, key=lambda inst: inst.n_pixels) if inside else None
     foreign = np.zeros(mask.shape, bool)
     for inst in instances:
         if inst is not target:

@@ -7,8 +7,8 @@ face on the pallet's underside, x into the pallet, y left, z up). SI units throu
 Method, in the forklift frame with the camera at `calibration.T_forklift_camera_at(frame.fork_height)`:
 
 0. **Instance** (only with `expected`, the pose where the pallet should be): the pallet pixels are
-   split into pallet instances at depth jumps (`perception.instances`); only the instance whose
-   entry face is nearest to `expected`, within a gate, is fitted, and other instances' pixels are
+   split into pallet instances at depth jumps (`perception.instances`); only the largest instance
+   whose entry face is within a gate around `expected` is fitted, and other instances' pixels are
    left out of every step below (else `PalletNotFound("not_where_expected")`).
 1. **Pixels.** Pixels labelled pallet-empty (7) or pallet-full (8) with depth. Each pixel is a ray
    `p(z) = t + d z` (`d` the forklift-frame direction of the pixel for unit camera z-depth) and a
@@ -174,8 +174,8 @@ def estimate_pallet(
     `T_forklift_pallet` is the pallet frame (origin at the centre of the entry face on the underside,
     x into the pallet) in the forklift frame, `T_world_pallet` is added when `T_world_forklift` (SE2)
     is given. With `expected` (`T_forklift_pallet` on the floor, SE2: where the pallet should be, in
-    the forklift frame) only the pallet instance whose entry face is nearest to it, inside the gate of
-    `envelope` (`InstanceConfig.gate`: the envelope plus a margin on each axis), is fitted and other pallets'
+    the forklift frame) only the largest pallet instance whose entry face is inside the gate of
+    `envelope` around it (`InstanceConfig.gate`: the envelope plus a margin on each axis) is fitted and other pallets'
     pixels are left out (`perception.instances`);
     without it every pallet-labelled pixel counts.
 

@@ -104,6 +104,41 @@ def test_the_gate_covers_the_envelope_and_stays_short_of_a_lane_neighbour():
         cfg.gate(-0.1, 0.4)
 
 
+def test_a_short_rack_pallet_is_found_not_its_own_deck_scraps():
+    # bench missions (seed 0, run 10): a narrow-aisle rack pallet 0.39 m short, 1.45 m from the camera. Pieces
+    # of its deck, split off at the board gaps' depth jumps, stand nearer the expected entry face than its
+    # front; the nearest was taken, its 40 mm "face" refused, and the Pickup then held on the pallet itself.
+    sc = Scenario.model_validate(
+        {
+            "map": "narrow_aisle.yaml",
+            "start": "rack_n3_pre",
+            "seed": 11,
+            "camera": {"mount": {"x": -0.10, "z": 0.44, "tilt_deg": 25.7}},
+            "pallets": [
+                {"node": "rack_n3", "dx": -0.39, "dy": 0.21, "dyaw_deg": 0.4, "loaded": False},
+                {"node": "rack_n2", "loaded": True},
+                {"node": "rack_n4", "loaded": False},
+            ],
+        }
+    )
+    sc.folder = MISSIONS
+    sim = Simulator(sc)
+    node = sim.roadmap.node("rack_n3")
+    sim.set_fork_height(node.height + 0.025)  # as the Pickup looks: forks at the pockets' height
+    for _ in range(2000):
+        sim.step()
+        if abs(sim.fork_height - node.height - 0.025) < 0.002:
+            break
+    expected = sim.true_pose.inv() @ pallet_pose_at_node(node.pose, node.height).to_se2()
+    calibration = Calibration(sim.T_forklift_camera_true, "truth")
+    est = estimate_pallet(
+        sim.grab(), calibration, T_world_forklift=sim.true_pose, expected=expected, support_height_m=1.8
+    )
+    assert est.T_world_pallet is not None
+    err = sim.pallets[0].T_world_pallet.to_se2().inv() @ est.T_world_pallet.to_se2()
+    assert math.hypot(err.x, err.y) < 0.01 and abs(math.degrees(err.yaw)) < 0.5
+
+
 def _run(tmp_path: Path, sc: Scenario):
     path = tmp_path / "mission.yaml"
     tasks = [{"type": "pickup", "node": "floor_b2"}]
