@@ -27,9 +27,11 @@ Method:
    pallet's axes, the front is the near end along x (`front_percentile`), the lateral centre the
    middle (`side_percentile` to its complement) of the points within `front_band_m` of the front.
    A rough point (centimetres), it only decides which instance is meant.
-4. **Selection.** The instance whose entry-face centre is nearest to the expected pallet origin,
-   if within `gate_m`; else none, and `InstanceSelection.miss_message` says how far the nearest
-   pallet seen is from where it was expected.
+4. **Selection.** Of the instances whose entry-face centre is inside the gate around the expected
+   pallet origin, the largest (a short pallet's deck scraps can stand nearer to it than its front);
+   the gate is `InstanceConfig.gate` (the misplacement envelope plus a margin on each axis, across never
+   as far as a lane neighbour's near edge). With none inside, none, and `InstanceSelection.miss_message`
+   says how far the nearest pallet seen is from where it was expected.
 
 Limits: pallets whose faces touch with no depth jump between them (no gap, one plane) are one
 piece; a pallet cut in two by an occluder in front of it gives two pieces, of which only one is fitted.
@@ -63,9 +65,15 @@ class InstanceConfig:
 
     min_pixels: int = 100
     """Fewest pixels of a piece to count as a pallet instance (a loaded EUR face at 4 m has ~1300)."""
-    gate_m: float = 0.5
-    """Largest distance from the expected pallet origin to an instance's entry-face centre (the
-    executor's misplacement envelope is +-0.4 m; a lane neighbour stands 1.0 m away)."""
+    gate_margin_m: float = 0.15
+    """The gate (`gate`) is the envelope plus this on each axis: the rough entry-face centre of a pallet
+    turned 15 deg is off by up to ~0.12 m on each (its near corner leads the face by 0.4 sin 15 = 0.10 m and
+    the front band's centre leans towards it; `tests/test_right_pallet.py` sees 0.52 m along and across at
+    the +-0.40 m corner) ..."""
+    gate_lateral_max_m: float = 0.58
+    """... but never more than this across: a lane neighbour (1.0 m centre to centre, 0.8 m wide) has its
+    near edge 0.6 m from the expected centre line, so any piece of it seen (cut by the image border, its
+    rough centre can be 0.74 m away) stays out when the slot is empty."""
     front_percentile: float = 2.0
     """Percentile of the points along the expected x axis taken as the instance's front."""
     front_band_m: float = 0.15
@@ -89,6 +97,30 @@ class InstanceConfig:
     foreign_margin_px: int = 2
     """Other instances' pixel masks are grown by this many pixels (label noise) to keep them out of the fit."""
 
+    def gate(self, lateral_m: float, longitudinal_m: float) -> Gate:
+        """The selection gate for a pallet expected within +-`lateral_m` and +-`longitudinal_m` (m) of its
+        node: the envelope plus `gate_margin_m` on each axis, across at most `gate_lateral_max_m`."""
+        if lateral_m < 0.0 or longitudinal_m < 0.0:
+            raise ValueError(f"envelope {lateral_m} m x {longitudinal_m} m: must not be negative")
+        lateral = min(lateral_m + self.gate_margin_m, self.gate_lateral_max_m)
+        return Gate(longitudinal_m + self.gate_margin_m, lateral)
+
+
+@dataclass(frozen=True)
+class Gate:
+    """How far an instance's rough entry-face centre may stand from the expected pallet origin, along the
+    expected pallet's x axis (`longitudinal_m`) and across it (`lateral_m`), in m."""
+
+    longitudinal_m: float
+    lateral_m: float
+
+    def admits(self, offset: tuple[float, float]) -> bool:
+        """Whether `offset` (along, across the expected pallet's axes; m) is inside the gate."""
+        return abs(offset[0]) <= self.longitudinal_m and abs(offset[1]) <= self.lateral_m
+
+    def __str__(self) -> str:
+        return f"+-{self.longitudinal_m:.2f} m along, +-{self.lateral_m:.2f} m across"
+
 
 @dataclass(frozen=True)
 class PalletInstance:
@@ -96,20 +128,21 @@ class PalletInstance:
 
     `mask` (H, W): its pixels (pallet-labelled, with depth, away from depth jumps); `entry_centre`:
     forklift-frame (x, y) in m of its rough entry-face centre on the floor; `distance_m`: from there
-    to the expected pallet origin.
+    to the expected pallet origin; `offset`: the same along and across the expected pallet's axes (m).
     """
 
     mask: np.ndarray
     n_pixels: int
     entry_centre: np.ndarray
     distance_m: float
+    offset: tuple[float, float]
 
 
 @dataclass(frozen=True)
 class InstanceSelection:
     """The instances of a frame and the one expected.
 
-    `instances`: nearest to `expected` first; `target`: the nearest if within `gate_m`, else None.
+    `instances`: nearest to `expected` first; `target`: the largest inside `gate`, else None.
     `target_mask` (H, W): the pixels to fit (the target's, with the pallet-labelled pixels next to
     it on depth jumps; empty without a target); `foreign_mask` (H, W): the other instances' pixels,
     grown by the margin, never the target's: left out of the fit altogether.
@@ -118,7 +151,7 @@ class InstanceSelection:
     expected: SE2
     instances: tuple[PalletInstance, ...]
     target: PalletInstance | None
-    gate_m: float
+    gate: Gate
     target_mask: np.ndarray
     foreign_mask: np.ndarray
 
@@ -137,7 +170,7 @@ class InstanceSelection:
         others = f" ({len(self.instances)} pallets seen)" if len(self.instances) > 1 else ""
         return (
             f"the nearest pallet seen is {nearest.distance_m:.2f} m from where it was expected "
-            f"({where}; its entry face at x {x:.2f} m, y {y:+.2f} m; gate {self.gate_m:.2f} m){others}"
+            f"({where}; its entry face at x {x:.2f} m, y {y:+.2f} m; gate {self.gate}){others}"
         )
 
 
@@ -289,8 +322,10 @@ def find_instances(
         own = owner == i
         inst_mask = np.zeros(mask.shape, bool)
         inst_mask[m_rows[own], m_cols[own]] = True
-        distance = math.hypot(centre[0] - expected.x, centre[1] - expected.y)
-        found.append(PalletInstance(inst_mask, int(own.sum()), centre, distance))
+        dx, dy = centre[0] - expected.x, centre[1] - expected.y
+        c, s = math.cos(expected.yaw), math.sin(expected.yaw)
+        offset = (float(c * dx + s * dy), float(-s * dx + c * dy))
+        found.append(PalletInstance(inst_mask, int(own.sum()), centre, math.hypot(dx, dy), offset))
     return sorted(found, key=lambda inst: inst.distance_m)
 
 
@@ -301,8 +336,15 @@ def select_instance(
     expected: SE2,
     edges: np.ndarray | None = None,
     config: InstanceConfig | None = None,
+    *,
+    gate: Gate,
 ) -> InstanceSelection:
-    """The instances of `find_instances` and the one nearest to `expected` (forklift frame) within the gate.
+    """The instances of `find_instances` and the largest of those inside `gate` around `expected` (forklift
+    frame; `InstanceConfig.gate` of the misplacement envelope), none if none is.
+
+    The largest, not the nearest: a pallet standing short has scraps of its own deck (split off by the
+    depth jumps of the board gaps) nearer to the expected entry face than its own front; a neighbour stays
+    outside the gate.
 
     `target_mask` holds the selected instance's pixels and the pixels of `mask` next to them (on the
     depth jumps at its edges), minus `foreign_mask`: the other instances' pixels grown by
@@ -310,7 +352,8 @@ def select_instance(
     """
     cfg = config or InstanceConfig()
     instances = find_instances(frame, T_forklift_camera, mask, expected, edges, cfg)
-    target = instances[0] if instances and instances[0].distance_m <= cfg.gate_m else None
+    inside = [inst for inst in instances if gate.admits(inst.offset)]
+    target = max(inside, key=lambda inst: inst.n_pixels) if inside else None
     foreign = np.zeros(mask.shape, bool)
     for inst in instances:
         if inst is not target:
@@ -323,4 +366,4 @@ def select_instance(
     else:
         foreign &= ~target.mask
         target_mask = target.mask
-    return InstanceSelection(expected, tuple(instances), target, cfg.gate_m, target_mask, foreign)
+    return InstanceSelection(expected, tuple(instances), target, gate, target_mask, foreign)

@@ -7,8 +7,8 @@ face on the pallet's underside, x into the pallet, y left, z up). SI units throu
 Method, in the forklift frame with the camera at `calibration.T_forklift_camera_at(frame.fork_height)`:
 
 0. **Instance** (only with `expected`, the pose where the pallet should be): the pallet pixels are
-   split into pallet instances at depth jumps (`perception.instances`); only the instance whose
-   entry face is nearest to `expected`, within a gate, is fitted, and other instances' pixels are
+   split into pallet instances at depth jumps (`perception.instances`); only the largest instance
+   whose entry face is within a gate around `expected` is fitted, and other instances' pixels are
    left out of every step below (else `PalletNotFound("not_where_expected")`).
 1. **Pixels.** Pixels labelled pallet-empty (7) or pallet-full (8) with depth. Each pixel is a ray
    `p(z) = t + d z` (`d` the forklift-frame direction of the pixel for unit camera z-depth) and a
@@ -89,7 +89,7 @@ from palletpilot.perception.geometry_labels import (
     pallet_labels,
     sources_note,
 )
-from palletpilot.perception.instances import select_instance
+from palletpilot.perception.instances import Gate, select_instance
 from palletpilot.perception.pallet_deck import _ON_DECK_CLASSES, _deck_yaw
 from palletpilot.perception.pallet_estimate import (
     DEFAULT_CONFIG,
@@ -174,8 +174,9 @@ def estimate_pallet(
     `T_forklift_pallet` is the pallet frame (origin at the centre of the entry face on the underside,
     x into the pallet) in the forklift frame, `T_world_pallet` is added when `T_world_forklift` (SE2)
     is given. With `expected` (`T_forklift_pallet` on the floor, SE2: where the pallet should be, in
-    the forklift frame) only the pallet instance whose entry face is nearest to it, within
-    `config.instances.gate_m`, is fitted and other pallets' pixels are left out (`perception.instances`);
+    the forklift frame) only the largest pallet instance whose entry face is inside the gate of
+    `envelope` around it (`InstanceConfig.gate`: the envelope plus a margin on each axis) is fitted and other pallets'
+    pixels are left out (`perception.instances`);
     without it every pallet-labelled pixel counts.
 
     `labels` says which pixels are the pallet's (`perception.geometry_labels`): the frame's labels
@@ -202,7 +203,9 @@ def estimate_pallet(
         depth_noise_k=config.depth_noise_k,
     )
     try:
-        estimate = _estimate(dataclasses.replace(frame, labels=found.labels), T_cf, pallet, config, expected, found)
+        gate = config.instances.gate(envelope.lateral_m, envelope.longitudinal_m)
+        labelled = dataclasses.replace(frame, labels=found.labels)
+        estimate = _estimate(labelled, T_cf, pallet, config, expected, found, gate)
     except PalletNotFound as exc:
         note = sources_note(found)
         if not note:
@@ -220,14 +223,16 @@ def _estimate(
     cfg: PalletEstimatorConfig,
     expected: SE2 | None,
     found_labels: PalletLabels,
+    gate: Gate,
 ) -> PalletEstimate:
-    """`estimate_pallet`'s steps on a frame whose labels `found_labels` chose (forklift frame, m)."""
+    """`estimate_pallet`'s steps on a frame whose labels `found_labels` chose (forklift frame, m); `gate`:
+    the instance selection's (`InstanceConfig.gate`)."""
     assert frame.labels is not None  # `pallet_labels` gives labels in every mode
     model = _Model.of(pallet)
     R, cam = T_cf.R, T_cf.t
     depth = frame.depth
     # 0. and 1. The pallet pixels (of the expected instance only, with `expected`).
-    valid, labelled, rows, cols, found = _pallet_pixels(frame, frame.labels, T_cf, cfg, expected)
+    valid, labelled, rows, cols, found = _pallet_pixels(frame, frame.labels, T_cf, cfg, expected, gate)
     rays = _rays(depth, frame.K, R, rows, cols, np.ones(len(rows), bool))
     rng = np.random.default_rng(cfg.seed)
 
@@ -358,9 +363,15 @@ class _Pixels(NamedTuple):
 
 
 def _pallet_pixels(
-    frame: FrameBundle, labels: np.ndarray, T_cf: SE3, cfg: PalletEstimatorConfig, expected: SE2 | None
+    frame: FrameBundle,
+    labels: np.ndarray,
+    T_cf: SE3,
+    cfg: PalletEstimatorConfig,
+    expected: SE2 | None,
+    gate: Gate,
 ) -> _Pixels:
-    """The pallet-labelled pixels with depth; with `expected` only those of the instance found there."""
+    """The pallet-labelled pixels with depth; with `expected` only those of the instance found there, inside
+    `gate` around it."""
     depth = frame.depth
     valid = np.isfinite(depth) & (depth > 0)
     labelled = class_mask(labels, PALLET_CLASSES)
@@ -369,7 +380,7 @@ def _pallet_pixels(
         raise PalletNotFound("too_few_points", f"{len(rows)} pallet pixels with depth, need at least {cfg.min_points}")
     if expected is not None:  # 0. Only the expected pallet instance; other pallets' pixels are no evidence.
         jumps = _depth_edges(depth, valid, cfg)
-        chosen = select_instance(frame, T_cf, labelled & valid, expected, jumps, cfg.instances)
+        chosen = select_instance(frame, T_cf, labelled & valid, expected, jumps, cfg.instances, gate=gate)
         if chosen.target is None:
             raise PalletNotFound("not_where_expected", chosen.miss_message())
         valid &= ~chosen.foreign_mask

@@ -40,6 +40,9 @@ def nominal(node: str = "floor_b2") -> SE2:
     ("offset", "accepted"),
     [
         (SE2(0.30, -0.30, math.radians(10.0)), True),  # misplaced, but the mission's pallet
+        (SE2(0.42, 0.38, math.radians(15.5)), True),  # at the envelope's corner, estimated a little past it
+        (SE2(0.0, 0.44, 0.0), False),  # past the estimate's tolerance
+        (SE2(0.0, 0.0, math.radians(16.5)), False),
         (SE2(0.0, 1.0, 0.0), False),  # the neighbour 1.0 m to the side
         (SE2(0.0, -0.45, 0.0), False),
         (SE2(0.5, 0.0, 0.0), False),

@@ -10,6 +10,7 @@ import yaml
 from palletpilot.executor.apps.app import run_simulated
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration
+from palletpilot.perception.instances import InstanceConfig
 from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
 from palletpilot.perception.specs import pallet_pose_at_node
 from palletpilot.sim.scenario import Scenario
@@ -25,6 +26,10 @@ def _lane(target: dict | None, loaded: bool, seed: int, start: str = "floor_b2_p
     pallets = [{**n, "loaded": loaded} for n in NEIGHBOURS]
     if target is not None:
         pallets.append({"node": "floor_b2", "loaded": loaded, **target})
+    return _scene(pallets, seed, start)
+
+
+def _scene(pallets: list[dict], seed: int, start: str = "floor_b2_pre") -> Scenario:
     sc = Scenario.model_validate(
         {
             "map": "warehouse.yaml",
@@ -70,6 +75,68 @@ def test_an_empty_slot_between_neighbours_is_not_found_with_the_distance():
         estimate_pallet(frame, calibration, T_world_forklift=sim.true_pose, expected=expected)
     assert info.value.reason == "not_where_expected"
     assert "0.9" in str(info.value) or "1.0" in str(info.value)  # the nearest neighbour, ~1 m away
+
+
+# The corners of the Pickup's +-0.40 m envelope (0.57 m from the node), turned so that the rough entry-face
+# centre is off the most (0.52 m along and across, 0.73 m away); a neighbour 1.0 m away on the far side.
+@pytest.mark.parametrize(
+    ("dx", "dy", "dyaw_deg", "loaded"), [(-0.4, -0.4, -15.0, True), (0.4, 0.4, 0.0, False), (-0.4, 0.4, 15.0, False)]
+)
+def test_a_pallet_at_the_envelope_corner_is_found(dx, dy, dyaw_deg, loaded):
+    neighbour = {"x": 25.05, "y": 11.5 + (1.0 if dy < 0 else -1.0), "yaw_deg": 0.0, "loaded": loaded}
+    target = {"node": "floor_b2", "dx": dx, "dy": dy, "dyaw_deg": dyaw_deg, "loaded": loaded}
+    sim = Simulator(_scene([neighbour, target], seed=5))
+    frame, calibration, expected = _frame_and_expected(sim)
+    est = estimate_pallet(frame, calibration, T_world_forklift=sim.true_pose, expected=expected)
+    assert est.T_world_pallet is not None
+    err = sim.pallets[1].T_world_pallet.to_se2().inv() @ est.T_world_pallet.to_se2()
+    assert math.hypot(err.x, err.y) < 0.01 and abs(math.degrees(err.yaw)) < 0.5
+    assert est.extras["instance_distance_m"] > 0.5  # beyond the former fixed 0.50 m gate
+
+
+def test_the_gate_covers_the_envelope_and_stays_short_of_a_lane_neighbour():
+    cfg = InstanceConfig()
+    gate = cfg.gate(0.4, 0.4)
+    assert gate.longitudinal_m == gate.lateral_m == pytest.approx(0.4 + cfg.gate_margin_m)
+    assert gate.admits((-0.52, 0.52)) and not gate.admits((0.0, 0.6)) and not gate.admits((0.6, 0.0))
+    assert cfg.gate(1.0, 0.1).lateral_m == cfg.gate_lateral_max_m < 0.6  # a neighbour's near edge is never inside
+    with pytest.raises(ValueError, match="negative"):
+        cfg.gate(-0.1, 0.4)
+
+
+def test_a_short_rack_pallet_is_found_not_its_own_deck_scraps():
+    # bench missions (seed 0, run 10): a narrow-aisle rack pallet 0.39 m short, 1.45 m from the camera. Pieces
+    # of its deck, split off at the board gaps' depth jumps, stand nearer the expected entry face than its
+    # front; the nearest was taken, its 40 mm "face" refused, and the Pickup then held on the pallet itself.
+    sc = Scenario.model_validate(
+        {
+            "map": "narrow_aisle.yaml",
+            "start": "rack_n3_pre",
+            "seed": 11,
+            "camera": {"mount": {"x": -0.10, "z": 0.44, "tilt_deg": 25.7}},
+            "pallets": [
+                {"node": "rack_n3", "dx": -0.39, "dy": 0.21, "dyaw_deg": 0.4, "loaded": False},
+                {"node": "rack_n2", "loaded": True},
+                {"node": "rack_n4", "loaded": False},
+            ],
+        }
+    )
+    sc.folder = MISSIONS
+    sim = Simulator(sc)
+    node = sim.roadmap.node("rack_n3")
+    sim.set_fork_height(node.height + 0.025)  # as the Pickup looks: forks at the pockets' height
+    for _ in range(2000):
+        sim.step()
+        if abs(sim.fork_height - node.height - 0.025) < 0.002:
+            break
+    expected = sim.true_pose.inv() @ pallet_pose_at_node(node.pose, node.height).to_se2()
+    calibration = Calibration(sim.T_forklift_camera_true, "truth")
+    est = estimate_pallet(
+        sim.grab(), calibration, T_world_forklift=sim.true_pose, expected=expected, support_height_m=1.8
+    )
+    assert est.T_world_pallet is not None
+    err = sim.pallets[0].T_world_pallet.to_se2().inv() @ est.T_world_pallet.to_se2()
+    assert math.hypot(err.x, err.y) < 0.01 and abs(math.degrees(err.yaw)) < 0.5
 
 
 def _run(tmp_path: Path, sc: Scenario):

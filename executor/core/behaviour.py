@@ -135,6 +135,10 @@ class Settings:
     envelope_lateral: float = 0.40
     envelope_longitudinal: float = 0.40
     envelope_yaw_deg: float = 15.0
+    # A pallet placed at the envelope's edge is estimated a few cm or under a degree past it: the check allows
+    # this much beyond the envelope (m, deg), far short of a neighbour (1.0 m in a lane).
+    envelope_tolerance: float = 0.03
+    envelope_tolerance_deg: float = 1.0
     estimate_jump: float = 0.15
     # At a rack node (height > 0) the truck's heels go at most this far past the node along its heading:
     # further, the mast meets the rack's front beam. A pallet standing deeper is entered only this far.

@@ -359,14 +359,16 @@ def _expected_pallet(ctx: Context) -> SE2:
 
 def _check_envelope(ctx: Context, pallet: SE2, previous: SE3 | None) -> None:
     """The estimated pallet (`T_world_pallet`, SE2) must be the mission's: inside the envelope of the task's
-    node (`Settings.envelope_*`) and where the previous estimate of this pickup saw it; else
-    `pallet_not_found` with the figures, and nothing is re-planned towards it."""
+    node (`Settings.envelope_*`, with `envelope_tolerance*` for the estimate's error at its edge) and where
+    the previous estimate of this pickup saw it; else `pallet_not_found` with the figures, and nothing is
+    re-planned towards it."""
     st = ctx.settings
     node = ctx.roadmap.node(ctx.memory.node_task().node)
     nominal = pallet_pose_at_node(node.pose, node.height).to_se2()
     off = nominal.inv() @ pallet
     yaw_deg = math.degrees(off.yaw)
-    if abs(off.y) > st.envelope_lateral or abs(off.x) > st.envelope_longitudinal or abs(yaw_deg) > st.envelope_yaw_deg:
+    lateral, along = st.envelope_lateral + st.envelope_tolerance, st.envelope_longitudinal + st.envelope_tolerance
+    if abs(off.y) > lateral or abs(off.x) > along or abs(yaw_deg) > st.envelope_yaw_deg + st.envelope_tolerance_deg:
         raise TaskFailed(
             PALLET_NOT_FOUND,
             f"the pallet seen stands {off.y:+.2f} m to the side, {off.x:+.2f} m along and {yaw_deg:+.1f} deg off "
