@@ -119,25 +119,40 @@ def cluster() -> Iterator[tuple[str, subprocess.Popen]]:
 def test_the_inputs_travel_with_the_tasks_to_both_nodes(cluster, tmp_path, monkeypatch):
     from test_suite_inputs import VERDICT, make_site
 
-    from palletpilot.executor.apps.suite import load_suite
-    from palletpilot.executor.apps.suite_inputs import gather_inputs
-    from palletpilot.executor.apps.suite_ray import run_on_ray
-
     address, _ = cluster
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     monkeypatch.chdir(tmp_path)
     suite_file = make_site(tmp_path / "site").relative_to(tmp_path)
-    specs = load_suite(suite_file).runs()
     local = tmp_path / "local"
     assert (
         subprocess.run([str(BIN / "palletpilot"), "test", str(suite_file), "--report", str(local)], env=ENV).returncode
         == 1
     )
-    inputs = gather_inputs(specs, suite_file)
-    shutil.rmtree(tmp_path / "site")  # no node can read the suite's folder now
-    outcome = run_on_ray(specs, tmp_path / "ray", address, None, lambda r, done: None, inputs)
-    assert outcome.jobs == 2 and not outcome.interrupted
-    on_ray = [r.to_json() for r in outcome.results]
+    # The head in a fresh process, as `palletpilot test` runs it: a Ray driver in this one would inherit the
+    # node address cached by an earlier in-process local Ray instance (tests/test_suite_ray.py), and the
+    # second node could then not reach the inputs' owner.
+    head = (
+        "import json, shutil, sys\n"
+        "from pathlib import Path\n"
+        "from palletpilot.executor.apps.suite import load_suite\n"
+        "from palletpilot.executor.apps.suite_inputs import gather_inputs\n"
+        "from palletpilot.executor.apps.suite_ray import run_on_ray\n"
+        "suite_file, address = Path(sys.argv[1]), sys.argv[2]\n"
+        "specs = load_suite(suite_file).runs()\n"
+        "inputs = gather_inputs(specs, suite_file)\n"
+        "shutil.rmtree('site')  # no node can read the suite's folder now\n"
+        "out = run_on_ray(specs, Path('ray'), address, None, lambda r, done: None, inputs)\n"
+        "print(json.dumps({'jobs': out.jobs, 'interrupted': out.interrupted,\n"
+        "                  'results': [r.to_json() for r in out.results]}))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", head, str(suite_file), address], env=ENV, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert not (tmp_path / "site").exists()
+    outcome = json.loads(done.stdout.strip().splitlines()[-1])
+    assert outcome["jobs"] == 2 and not outcome["interrupted"]
+    on_ray = outcome["results"]
     want = json.loads((local / "suite.json").read_text())["results"]
     assert [{k: r[k] for k in VERDICT} for r in on_ray] == [{k: r[k] for k in VERDICT} for r in want]
     assert len({r["started_s"] for r in on_ray}) == len(on_ray) and not any(r["retried"] for r in on_ray)
