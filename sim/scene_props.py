@@ -60,6 +60,23 @@ def clutter_box(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z
     return Box(size, rot_z(rng.uniform(0, np.pi)), t, OTHER, np.clip(colour, 0, 1), tex, scale / 100, 0)
 
 
+def _parts_to_boxes(
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    R: np.ndarray,
+    base: np.ndarray,
+    label: int,
+    tex: int,
+    texel_m: float,
+    scale: float = 1.0,
+) -> list[Box]:
+    """Boxes from (size, centre in the prop's frame, colour) parts, scaled by `scale`, placed by yaw `R` at
+    `base` (metres)."""
+    return [
+        Box(size * scale, R, base + R @ (centre * scale), label, np.clip(colour, 0, 1), tex, texel_m, 0)
+        for size, centre, colour in parts
+    ]
+
+
 def distractor(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z: float = 0.0) -> list[Box]:
     """Something with a pallet's look that is not a pallet (`OTHER_OBJECT`): a shelf unit (uprights and shelf
     boards), a slatted wooden crate, a stool or chair on legs, or a ribbed plastic bin, standing at `centre_xy`."""
@@ -106,19 +123,8 @@ def distractor(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z:
             parts.append((np.array([0.02, d + 0.02, h]), np.array([x, 0.0, h / 2])))
         colour, tex = np.clip(rng.random(3) ** 0.6, 0.05, 1), 0
     colour = np.asarray(colour, float)
-    return [
-        Box(
-            size * scale,
-            R,
-            base + R @ (centre * scale),
-            OTHER,
-            np.clip(colour * rng.uniform(0.85, 1.1), 0, 1),
-            tex,
-            scale / 150,
-            0,
-        )
-        for size, centre in parts
-    ]
+    tinted = [(size, centre, colour * rng.uniform(0.85, 1.1)) for size, centre in parts]
+    return _parts_to_boxes(tinted, R, base, OTHER, tex, scale / 150, scale)
 
 
 def table(rng: np.random.Generator, centre_xy: np.ndarray, top_size: np.ndarray, yaw: float) -> tuple[list[Box], float]:
@@ -140,20 +146,6 @@ def table(rng: np.random.Generator, centre_xy: np.ndarray, top_size: np.ndarray,
             leg = R @ np.array([sx * (top_size[0] / 2 - 0.05), sy * (top_size[1] / 2 - 0.05), (h - th) / 2])
             boxes.append(Box(np.array([0.04, 0.04, h - th]), R, c + leg, OTHER, colour * 0.7, 0, 0.01))
     return boxes, h
-
-
-def _parts_to_boxes(
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    R: np.ndarray,
-    base: np.ndarray,
-    label: int,
-    tex: int,
-    texel_m: float,
-) -> list[Box]:
-    """Boxes from (size, centre in the prop's frame, colour) parts placed by yaw `R` at `base` (metres)."""
-    return [
-        Box(size, R, base + R @ centre, label, np.clip(colour, 0, 1), tex, texel_m, 0) for size, centre, colour in parts
-    ]
 
 
 def filled_shelf(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z: float = 0.0) -> list[Box]:
@@ -185,9 +177,7 @@ def filled_shelf(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, 
                 centre = np.array([x + iw / 2, rng.uniform(-0.05, 0.05) * d, zs + 0.0125 + ih / 2])
                 parts.append((np.array([iw, d * rng.uniform(0.5, 0.95), ih]), centre, colour))
             x += iw + rng.uniform(0.0, 0.08)
-    return _parts_to_boxes(
-        [(s * scale, c * scale, col) for s, c, col in parts], R, np.array([*centre_xy, z]), OTHER, 0, scale / 150
-    )
+    return _parts_to_boxes(parts, R, np.array([*centre_xy, z]), OTHER, 0, scale / 150, scale)
 
 
 def drawer_cabinet(rng: np.random.Generator, centre_xy: np.ndarray, scale: float, z: float = 0.0) -> list[Box]:
@@ -204,9 +194,7 @@ def drawer_cabinet(rng: np.random.Generator, centre_xy: np.ndarray, scale: float
             cw, ch = w / cols * (1 - gap), h / rows * (1 - gap)
             centre = np.array([-w / 2 + (j + 0.5) * w / cols, d / 2 + 0.006, (i + 0.5) * h / rows])
             parts.append((np.array([cw, 0.012, ch]), centre, front))
-    return _parts_to_boxes(
-        [(s * scale, c * scale, col) for s, c, col in parts], R, np.array([*centre_xy, z]), OTHER, 0, scale / 150
-    )
+    return _parts_to_boxes(parts, R, np.array([*centre_xy, z]), OTHER, 0, scale / 150, scale)
 
 
 def person(rng: np.random.Generator, centre_xy: np.ndarray, z: float = 0.0) -> list[Box]:
