@@ -32,7 +32,7 @@ Public API:
 - `perception.segmentation`: `SegmentationService`, `OnnxSegmenter` (the shipped `DEFAULT_MODEL`),
   `GroundTruthSegmenter`, `evaluate_segmenter`, `SegmentationScore` (pooled per-class IoU),
   `load_hidden_mask` (pallets cut off where their load would be); `perception.train_segmentation`
-  trains the model.
+  trains the model, on batches from `perception.training_batches` (frames, crops, augmentation, workers).
 - `perception.realsense`: `RealSenseSource` (live D435/D435i), `RecordingSource` (.db3 recordings);
   `perception.realsense_synthetic`: `write_software_recording` (a recording of synthetic frames).
 - `PerceptionError`: every perception failure.

@@ -58,7 +58,7 @@ distortion (labels and depth remapped with the RGB, K zoomed, the coefficients a
 `dist`).
 
 Photometric effects that need no re-render (blur, motion blur, colour noise, gamma, JPEG, vignetting)
-are drawn per training step by `perception.train_segmentation.augment`.
+are drawn per training step by `perception.training_batches.augment`.
 
 Scenarios the simulator refuses (a bigger pallet or a clutter item overlapping something) are drawn
 again from the same generator, so frame `i` still depends only on `(seed, i)` (and `randomise`).

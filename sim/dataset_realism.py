@@ -23,7 +23,7 @@ so that the scene, colours and light of the frame stay those drawn without it:
   training reads the distorted image as it is, for cameras whose coefficients nobody gives).
 
 Motion blur, defocus, sensor noise, white balance, gamma, JPEG and vignetting are drawn per training
-step by `perception.train_segmentation.augment`, so they are not baked in here.
+step by `perception.training_batches.augment`, so they are not baked in here.
 
 Public API: `wear_pallet`, `camera_effects`, `distortion_maps`.
 """

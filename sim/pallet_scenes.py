@@ -23,7 +23,7 @@ map, no Open3D), so that thousands of frames come cheaply on any machine:
   pallet anywhere in view, roll +-6 deg.
 
 Camera effects (blur, noise, white balance, gamma, JPEG, vignetting) are drawn per training step by
-`perception.train_segmentation.augment`, not baked in here.
+`perception.training_batches.augment`, not baked in here.
 
 Frames are rasterised with a z-buffer: every box face is a convex polygon, clipped at the near plane,
 filled (`cv2.fillConvexPoly`), its inverse depth interpolated in the image plane. World frame: z up,

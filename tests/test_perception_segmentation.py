@@ -185,7 +185,7 @@ def test_ground_truth_segmenter_checks_the_size(sim_frame):
 
 
 def test_training_crops_are_drawn_around_pallets():
-    from palletpilot.perception.train_segmentation import sample_crop
+    from palletpilot.perception.training_batches import sample_crop
 
     labels = np.zeros((480, 640), np.uint8)
     labels[40:70, 500:600] = SemanticClass.PALLET_FULL

@@ -88,18 +88,21 @@ def test_thawed_batch_norms_compute_what_the_imported_model_computes():
 
 
 def test_batches_made_by_workers_do_not_depend_on_how_many():
-    from palletpilot.perception.train_segmentation import CROP, BatchSource, Frames
+    from palletpilot.perception.training_batches import CROP, BatchSource, Frames
 
     frames = Frames([EXAMPLE])
+    shared: list[Path] = []
 
     def batches(workers: int) -> list[tuple[np.ndarray, ...]]:
         source = BatchSource(frames, 2, CROP, 0.75, seed=4, rng=np.random.default_rng(4), workers=workers)
+        shared.append(Path(source.shared.name))  # the PNG frames, written for the spawned workers to map
         try:
             return [source.next() for _ in range(5)]
         finally:
             source.close()
 
     one, three = batches(1), batches(3)
+    assert shared[0] != shared[1] and not any(folder.exists() for folder in shared)  # removed on close
     for a, b in zip(one, three, strict=True):
         assert all(np.array_equal(u, v) for u, v in zip(a, b, strict=True))
     x, y, tops = one[0]
