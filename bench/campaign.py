@@ -29,6 +29,7 @@ import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +81,8 @@ def _local(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
     """The runs in `jobs` worker processes, as `palletpilot test --executor local` runs them."""
     if jobs == 1:
         return [run_case(spec, report) for spec in specs]
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
         return list(pool.map(run_case, specs, [report] * len(specs)))
 
 

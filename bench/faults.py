@@ -36,6 +36,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -320,7 +321,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run every seeded faulty mission and return the figures."""
     specs = _scenarios(args.runs, args.seed, args.kill_rate)
     if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as pool:
+        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
             outcomes = list(pool.map(_one, specs))
     else:
         outcomes = [_one(s) for s in specs]

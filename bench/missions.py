@@ -28,6 +28,7 @@ import collections
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -228,7 +229,8 @@ def run(args: argparse.Namespace) -> dict:
     modes = [m for mode in args.modes for m in _rows(mode, list(args.labels))]
     jobs = [(s, m) for m in modes for s in specs]
     if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as pool:
+        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
             outcomes = list(pool.map(_one, jobs))
     else:
         outcomes = [_one(j) for j in jobs]

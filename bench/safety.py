@@ -36,6 +36,7 @@ import shutil
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -355,7 +356,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     specs = _specs(args.runs, args.seed, families)
     t0 = time.perf_counter()
     if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as pool:
+        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
             outcomes = list(pool.map(_one, specs))
     else:
         outcomes = [_one(s) for s in specs]

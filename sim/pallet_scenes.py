@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 import cv2
@@ -481,5 +482,6 @@ def generate_scenes(
     work = [(out, seed, i, settings) for i in range(start, start + frames)]
     if jobs <= 1:
         return [_write_frame(w) for w in work]
-    with ProcessPoolExecutor(jobs) as pool:
+    # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+    with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
         return list(pool.map(_write_frame, work, chunksize=8))

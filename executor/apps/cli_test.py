@@ -23,6 +23,7 @@ import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
 from pathlib import Path
 
 from palletpilot.executor.apps.cli_args import count, out_file, out_folder
@@ -47,7 +48,8 @@ def _run_all(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
             results[k] = run_case(spec, report)
             print(progress_line(results[k], k + 1, total), file=sys.stderr, flush=True)
     else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
+        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
             futures = {pool.submit(run_case, spec, report): k for k, spec in enumerate(specs)}
             for done, fut in enumerate(as_completed(futures), start=1):
                 k = futures[fut]
