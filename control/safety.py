@@ -14,7 +14,8 @@ The protective length is the stopping distance `v t_response + v^2 / (2 emergenc
 `protective_margin`; the warning field reaches `warning_extra` beyond it. A simulator or a robot
 adapter evaluates intrusions; the executor only reads `SafetyState`.
 
-Public API: `FIELD_SETS`, `FieldRect`, `SafetyFields`, `SafetyState`, `safety_fields`, `stopping_distance`.
+Public API: `FIELD_SETS`, `TRAVEL_DIRECTIONS`, `FieldRect`, `SafetyFields`, `SafetyState`, `safety_fields`,
+`stopping_distance`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from palletpilot.control.vehicle import VehicleParams
 FieldSet = Literal["normal", "narrow"]
 TravelDirection = Literal["forward", "reverse"]
 FIELD_SETS: tuple[FieldSet, ...] = ("normal", "narrow")
+TRAVEL_DIRECTIONS: tuple[TravelDirection, ...] = ("forward", "reverse")
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ pallet is part of the truck). It then acts as a safety PLC would, independent of
   protective field the truck would have at `warning_speed` stayed clear for `restart_delay_s`.
 
 The direction of travel is the commanded one (the drive's direction signal), else the measured one,
-else the last. Poses in the world frame, sizes in metres.
+else the one selected with the field set before the truck drives (`select`), else the last. Poses in the
+world frame, sizes in metres.
 
 Public API: `SimScanner`.
 """
@@ -40,6 +41,11 @@ class SimScanner:
         self.clear_s = 0.0  # how long the restart fields have been clear while held (s)
         self.state = SafetyState()
         self.protective_zone: list[Solid] = []  # the field to keep clear as solids (world), after `update`
+
+    def select(self, field_set: FieldSet, direction: TravelDirection) -> None:
+        """Select the field case: the set and the direction of travel the truck is about to drive. It holds
+        while the truck stands and nothing is commanded; a command or motion then sets the direction."""
+        self.field_set, self.direction = field_set, direction
 
     @property
     def enabled(self) -> bool:

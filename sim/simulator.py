@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
-from palletpilot.control.safety import FIELD_SETS, SafetyState
+from palletpilot.control.safety import FIELD_SETS, TRAVEL_DIRECTIONS, SafetyState
 from palletpilot.control.vehicle import VehicleParams, load_vehicle
 from palletpilot.geometry import SE2, SE3, PalletpilotError
 from palletpilot.geometry.errors import collect, raise_problems
@@ -434,11 +434,16 @@ class Simulator(PalletPhysics):
         """The safety scanners' state after the last step (`control.safety.SafetyState`)."""
         return self.scanner.state
 
-    def set_safety_field_set(self, name: str) -> None:
-        """Select the scanners' field set: `normal`, or `narrow` for entering a pallet or a floor drop slot."""
+    def set_safety_field_set(self, name: str, direction: str = "forward") -> None:
+        """Select the scanners' field case: the set (`normal`, or `narrow` for entering a pallet or a floor
+        drop slot) and the direction of travel the truck is about to drive (`forward`, `reverse`)."""
         if name not in FIELD_SETS:
             raise SimError(f"unknown safety field set '{name}' (one of {', '.join(FIELD_SETS)})")
-        self.scanner.field_set = "narrow" if name == "narrow" else "normal"
+        if direction not in TRAVEL_DIRECTIONS:
+            raise SimError(f"unknown direction of travel '{direction}' (one of {', '.join(TRAVEL_DIRECTIONS)})")
+        self.scanner.select(
+            "narrow" if name == "narrow" else "normal", "reverse" if direction == "reverse" else "forward"
+        )
 
     def _front_x(self) -> float:
         """The truck's leading end going forward (m, forklift frame): the fork tips or a carried pallet."""

@@ -266,9 +266,13 @@ def test_drive_commands_at_the_control_rate(truck: tuple[MemoryTransport, RosVeh
     vehicle.set_fork_height(1.1)
     assert bus.sent(config.topics.fork_height.name)[-1].data == pytest.approx(1.1)
     vehicle.set_safety_field_set("narrow")
-    assert bus.sent(config.topics.field_set.name)[-1].data == "narrow"
+    assert bus.sent(config.topics.field_set.name)[-1].data == "narrow/forward"
+    vehicle.set_safety_field_set("normal", "reverse")  # one message: the set and the direction together
+    assert bus.sent(config.topics.field_set.name)[-1].data == "normal/reverse"
     with pytest.raises(ValueError):
         vehicle.set_safety_field_set("wide")
+    with pytest.raises(ValueError):
+        vehicle.set_safety_field_set("normal", "sideways")
 
 
 def test_emergency_stop_latches(truck: tuple[MemoryTransport, RosVehicle, RobotConfig]) -> None:

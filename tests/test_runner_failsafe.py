@@ -96,7 +96,7 @@ class FakeVehicle:
     def safety_state(self) -> SafetyState:
         return SafetyState()
 
-    def set_safety_field_set(self, name: str) -> None:
+    def set_safety_field_set(self, name: str, direction: str = "forward") -> None:
         self.field_set = name
 
     def step(self, dt: float) -> None:

@@ -72,7 +72,8 @@ class FollowRoute(Behaviour):
         if not self.route.edges:
             return
         field_set = field_set_for(ctx, self.route)
-        ctx.vehicle.set_safety_field_set(field_set)
+        # the direction too: standing, the truck is watched the way it is about to drive
+        ctx.vehicle.set_safety_field_set(field_set, self.route.edges[0].direction.value)
         raised = ctx.vehicle.fork_height > travel_height(ctx) + TRAVEL_HEIGHT_TOLERANCE
         path = reference_path(self.route, speed_cap=ctx.params.creep_speed if raised else None)
         ctx.memory.planned_paths.append(

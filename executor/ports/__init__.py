@@ -86,9 +86,12 @@ class VehiclePort(Protocol):
     def safety_state(self) -> SafetyState:
         """The safety scanners: field set, warning (speed cap), protective stop, what intrudes."""
 
-    def set_safety_field_set(self, name: str) -> None:
-        """Select the scanners' field set (`control.safety.FIELD_SETS`): `normal`, or `narrow` to enter a
-        pallet or a floor drop slot once the camera has seen the entry volume clear."""
+    def set_safety_field_set(self, name: str, direction: str = "forward") -> None:
+        """Select the scanners' field case before the truck drives: the field set (`control.safety.FIELD_SETS`:
+        `normal`, or `narrow` to enter a pallet or a floor drop slot once the camera has seen the entry volume
+        clear) and the direction of travel it is about to drive (`forward`, `reverse`). A standing truck is
+        watched in that direction until it moves: a pallet just set down in front of the forks must not hold
+        a truck that is about to back away from it."""
 
 
 class PassThroughVehicle:

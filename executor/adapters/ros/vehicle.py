@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from palletpilot.control.safety import FIELD_SETS, SafetyState
+from palletpilot.control.safety import FIELD_SETS, TRAVEL_DIRECTIONS, SafetyState
 from palletpilot.control.vehicle import VehicleParams
 from palletpilot.executor.adapters.ros import messages as msgs
 from palletpilot.executor.adapters.ros.config import RobotConfig, TopicSpec
@@ -400,13 +400,17 @@ class RosVehicle:
         spec = self.config.topics.fork_height
         self.transport.publish(spec.name, msgs.Float64(data=self._fork_target), spec.qos.spec())
 
-    def set_safety_field_set(self, name: str) -> None:
-        """Select the scanners' field set (`normal` or `narrow`), sent on the field set topic."""
+    def set_safety_field_set(self, name: str, direction: str = "forward") -> None:
+        """Select the scanners' field case, sent on the field set topic as `SET/DIRECTION` (one message, so
+        the truck never switches to the set with the other direction): `normal` or `narrow`, and the
+        direction of travel it is about to drive, `forward` or `reverse`."""
         if name not in FIELD_SETS:
             raise ValueError(f"unknown safety field set '{name}' (one of {', '.join(FIELD_SETS)})")
+        if direction not in TRAVEL_DIRECTIONS:
+            raise ValueError(f"unknown direction of travel '{direction}' (one of {', '.join(TRAVEL_DIRECTIONS)})")
         self._field_set = name
         spec = self.config.topics.field_set
-        self.transport.publish(spec.name, msgs.String(data=name), spec.qos.spec())
+        self.transport.publish(spec.name, msgs.String(data=f"{name}/{direction}"), spec.qos.spec())
 
     def tick(self, dt: float = 0.0) -> None:
         """After each clock tick: re-send the drive command (unless sent this tick), the fork target, the e-stop."""

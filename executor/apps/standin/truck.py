@@ -15,7 +15,7 @@ tested end to end without hardware:
   what `sim.grab()` would give for the truck's state when it was requested, and the child's first frame
   comes a few seconds after the start (its own interpreter and world);
 - subscribes the drive command (`AckermannDriveStamped`: speed m/s, steering angle rad), the fork
-  height target, the field set and the emergency stop;
+  height target, the field case (`SET/DIRECTION`) and the emergency stop;
 - behaves like a truck controller with a command timeout: when no drive command came for
   `command_timeout_s` (0.2 s) it brakes at the vehicle's emergency deceleration to a standstill, and
   drives again on the next command. The check wakes exactly at the deadline, not at the next tick. An
@@ -45,6 +45,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from palletpilot.control.safety import FIELD_SETS, TRAVEL_DIRECTIONS
 from palletpilot.executor.adapters.ros import messages as msgs
 from palletpilot.executor.adapters.ros.config import RobotConfig
 from palletpilot.executor.adapters.ros.transport import Transport
@@ -271,9 +272,11 @@ class StandIn:
             fl.speed_cmd = 0.0
         if self._fork_target is not None:
             self.sim.set_fork_height(self._fork_target)
-        field_set, self._field_set = self._field_set, None
-        if field_set in ("normal", "narrow"):
-            self.sim.set_safety_field_set(field_set)
+        field_case, self._field_set = self._field_set, None
+        if field_case is not None:
+            name, _, direction = field_case.partition("/")  # `SET/DIRECTION`, or a bare `SET` (forward)
+            if name in FIELD_SETS and direction in ("", *TRAVEL_DIRECTIONS):
+                self.sim.set_safety_field_set(name, direction or "forward")
 
     def _header(self, frame: str, t: float) -> msgs.Header:
         return msgs.Header(stamp=msgs.stamp(t), frame_id=frame)

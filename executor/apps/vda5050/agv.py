@@ -503,7 +503,7 @@ class Agv(AgvInstantActions, AgvJournal):
         if event == "state_start":
             if state == "reverse_out" and not self.orders.can_enter(pre):
                 self._in_slot = True  # before the back-out's drive selects its fields (`legs.SlotFields`)
-                self.vehicle.set_safety_field_set("narrow")
+                self.vehicle.set_safety_field_set("narrow", "reverse")
                 self._gate(pre)
             elif state == "return_to_roadmap":
                 ctx = runner.ctx.memory

@@ -133,9 +133,9 @@ class SlotFields:
     def __init__(self, vehicle: VehiclePort, in_slot: Callable[[], bool]) -> None:
         self._vehicle, self._in_slot = vehicle, in_slot
 
-    def set_safety_field_set(self, name: str) -> None:
-        """Select the scanners' field set: `narrow` while in the slot, else `name`."""
-        self._vehicle.set_safety_field_set("narrow" if self._in_slot() else name)
+    def set_safety_field_set(self, name: str, direction: str = "forward") -> None:
+        """Select the scanners' field case: the set `narrow` while in the slot, else `name`; `direction` as asked."""
+        self._vehicle.set_safety_field_set("narrow" if self._in_slot() else name, direction)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._vehicle, name)
