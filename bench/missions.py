@@ -16,9 +16,15 @@ else `adaptive:LABELS`), `adaptive_truth` (the model mode fed the simulator's la
 `no_adapt` (`run --no-adapt`: no re-plan, the camera's checks refuse a pallet the forks do not fit as it
 stands) and `paper` (the paper's original Pickup: no camera, only the proximity safety check; a baseline
 that no truck runs, `Settings.paper_baseline`). Success: the pallet is on the forks and nothing
-collided. Per mode: the success rate (overall and per family), the manoeuvres planned (`manoeuvres`:
-re-plans that needed forward and reverse moves, and the runs with one) and the engagement shortfalls
-(`engagement`: pallets taken with the forks held back at the rack, and pallets refused for it).
+collided. A rack pallet is judged beforehand from the simulator's truth by the engagement rule
+(`executor.core.engagement.rack_engagement`, `_rack_verdict`): `take` (the forks reach its minimum
+engagement with `VERDICT_BAND_M` to spare for the estimate's error), `refuse` (they cannot, even with a
+perfect estimate) or `either`. A run's outcome is *correct* when a `take` run succeeds, a `refuse` run is
+refused for its engagement without contact, and an `either` run does one of the two; `success_rate` counts
+successes over all runs, `take_success_rate` over the runs that can be taken. Per mode also: the success
+rate per family, the verdicts, the manoeuvres planned (`manoeuvres`: re-plans that needed forward and
+reverse moves, and the runs with one), the engagement shortfalls (`engagement`: pallets taken with the
+forks held back at the rack, and pallets refused for it) and the incorrect runs with their messages.
 """
 
 from __future__ import annotations
@@ -54,6 +60,11 @@ NARROW_RACK_DEPTH_M = 1.1
 """The narrow aisle (`missions/narrow_aisle.yaml`): rack to rack (m), and the simulator's rack depth (m)."""
 LABELS = ("fused", "geometry", "model")
 """`--labels` of the adaptive mode (`perception.labels_mode`)."""
+INCORRECT_KEYS = ("index", "family", "node", "verdict", "reason", "message")
+"""What the figures say of each incorrect run."""
+VERDICT_BAND_M = 0.03
+"""A rack pallet within this much (m) of the engagement limit may be taken or refused (`_rack_verdict`):
+about the pallet estimate's error at the envelope's edge (`Settings.envelope_tolerance`)."""
 RACK_DEEPER_MAX_M = 0.13
 """A rack pallet stands at most this much deeper than its node in `bench faults` (its figures stay
 comparable). The Pickup takes deeper ones while the forks carry the pallet type's minimum engagement
@@ -133,6 +144,7 @@ def _scenarios(runs: int, seed: int, families: list[str]) -> list[dict]:
             {
                 "index": i,
                 "family": family,
+                "verdict": _rack_verdict(world, NARROW_MAP if family == "narrow" else "warehouse.yaml", node, target),
                 "map": NARROW_MAP if family == "narrow" else "warehouse.yaml",
                 "node": node,
                 "start": before,
@@ -158,6 +170,41 @@ def _scenarios(runs: int, seed: int, families: list[str]) -> list[dict]:
             }
         )
     return out
+
+
+def _rack_verdict(world: Roadmap, map_name: str, node: str, target: dict) -> str:
+    """What a pickup of the pallet `target` (at `node` of `world`, the map file `map_name` of the missions
+    folder, misplaced by its dx, dy in m and dyaw_deg in the node's frame) must do,
+    from the truth: `take`, `refuse` (a rack pallet deeper than the forks can carry) or `either` (within
+    `VERDICT_BAND_M` of that limit); floor pallets are always `take`."""
+    import math
+
+    from palletpilot.control.vehicle import load_vehicle
+    from palletpilot.executor.core.behaviour import Settings
+    from palletpilot.executor.core.engagement import rack_engagement
+    from palletpilot.geometry import SE2
+    from palletpilot.perception.alignment import AlignmentTolerances
+    from palletpilot.perception.specs import ENTRY_GAP_M, load_forks, pallet_type
+    from palletpilot.roadmap.mapfile import map_vehicle_file
+
+    if world.node(node).height <= 0.0:
+        return "take"
+    st = Settings()
+    forks, pallet = load_forks(MISSIONS / "forks.yaml"), pallet_type("eur")
+    vehicle = load_vehicle(map_vehicle_file(MISSIONS / map_name) or MISSIONS / "forklift.yaml")
+    tol = AlignmentTolerances.from_geometry(
+        forks,
+        pallet,
+        lateral_margin_m=st.lateral_margin,
+        longitudinal_margin_m=st.longitudinal_margin,
+        yaw_limit_deg=st.yaw_limit_deg,
+    )
+    gap = SE2(ENTRY_GAP_M, 0.0, 0.0)
+    rel = gap @ SE2(target["dx"], target["dy"], math.radians(target["dyaw_deg"])) @ gap.inv()  # serving node
+    held = rack_engagement(vehicle.body, tol, pallet, st.rack_overrun, rel)
+    if held is None or held.enough(st.longitudinal_margin + VERDICT_BAND_M):
+        return "take"
+    return "refuse" if not held.enough(0.0) else "either"
 
 
 def load_narrow_aisle() -> Roadmap:
@@ -198,14 +245,19 @@ def _one(job: tuple[dict, str]) -> dict:
     success = task.result == "succeeded" and lifted and not run.sim.collisions
     reason = None if success else str(task.reason or ("collision" if run.sim.collisions else "pallet_not_lifted"))
     engagement = task.record.get("engagement", [])
+    refused = any(not e["enough"] for e in engagement) and reason == "no_feasible_approach" and not run.sim.collisions
+    verdict = spec["verdict"]
     return {
         "index": spec["index"],
         "mode": mode,
         "family": spec["family"],
+        "verdict": verdict,
+        "correct": success if verdict == "take" else (refused if verdict == "refuse" else success or refused),
+        "message": None if success else (task.message or "")[:400],
         "node": spec["node"],
         "manoeuvres": sum("manoeuvre" in t for t in task.record.get("temporary_nodes", [])),
         "held_back": any(e["enough"] for e in engagement),
-        "refused_engagement": any(not e["enough"] for e in engagement),
+        "refused_engagement": refused,
         "contacts": len(run.sim.collisions),
         "success": success,
         "reason": reason,
@@ -252,6 +304,7 @@ def run(args: argparse.Namespace) -> dict:
 def _figures(mine: list[dict], families: list[str]) -> dict:
     """One mode's figures over its outcomes."""
     ok = [o for o in mine if o["success"]]
+    takeable = [o for o in mine if o["verdict"] == "take"]
     per_family = {}
     for family in families:
         runs = [o for o in mine if o["family"] == family]
@@ -259,6 +312,9 @@ def _figures(mine: list[dict], families: list[str]) -> dict:
             per_family[family] = round(sum(o["success"] for o in runs) / len(runs), 4)
     return {
         "success_rate": round(len(ok) / len(mine), 4),
+        "take_success_rate": round(sum(o["success"] for o in takeable) / len(takeable), 4) if takeable else None,
+        "correct_outcome_rate": round(sum(o["correct"] for o in mine) / len(mine), 4),
+        "verdicts": dict(collections.Counter(o["verdict"] for o in mine)),
         "by_family": per_family,
         "manoeuvres": {
             "planned": sum(o["manoeuvres"] for o in mine),
@@ -275,4 +331,5 @@ def _figures(mine: list[dict], families: list[str]) -> dict:
         "mean_wall_s": round(float(np.mean([o["wall_s"] for o in mine])), 2),
         "failures": dict(collections.Counter(str(o["reason"]) for o in mine if not o["success"])),
         "failed_runs": [o["index"] for o in mine if not o["success"]][:20],
+        "incorrect_runs": [{k: o[k] for k in INCORRECT_KEYS} for o in mine if not o["correct"]][:20],
     }

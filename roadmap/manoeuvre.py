@@ -6,8 +6,11 @@ and backs again, then drives in. `plan_manoeuvre` does the same: it searches sho
 reverse: at most `ManoeuvreLimits.max_moves` of them) and ends with the forward curve `connect` makes to
 `goal`. Every pose along every segment keeps the truck's `Footprint`, grown by `clearance_m`, clear of
 every `Obstacle` (racks, stored pallets, the pallet to be picked), and within `reach_m` of the start or the
-goal: a manoeuvre stays in the stretch of aisle the truck stands in. Shortest first: fewer moves, then
-the shorter path (a change of direction counts `REVERSAL_COST_M`).
+goal: a manoeuvre stays in the stretch of aisle the truck stands in. Behind the truck, the safety
+scanners' reversing field (`Footprint.field_m`) is kept clear too, of the obstacles that cut the scan
+plane (racks, pallets on the floor; not a pallet stored on a rack's beams, which the body must clear but
+the field does not see): every move is driven in reverse one way or the other, out or back. Shortest
+first: fewer moves, then the shorter path (a change of direction counts `REVERSAL_COST_M`).
 
 Poses are the forklift's (x, y in m, yaw in rad: the fork tips' direction). A segment's curve runs in the
 direction of travel: its tangent is the truck's yaw driving forward, the yaw + pi in reverse (as roadmap
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import heapq
 import itertools
 import math
 from collections.abc import Callable, Iterator, Sequence
@@ -38,6 +42,11 @@ REVERSAL_COST_M = 1.0
 """A change of the direction of travel costs as much as this much more path (m): the truck stops there."""
 ROUGH_CURVATURE_SLACK = 1.5
 """`connect` is not tried where a coarse look at its curves finds none below this many times the limit."""
+BACK_IN_M = (0.25, 0.4)
+"""How far ahead of the goal (m) a manoeuvre may stop to back straight into it (`_Search._back_in`)."""
+CURVED_END_COST_M = 0.6
+"""A manoeuvre that ends on a curve, with no straight run into the goal, costs as much as this much more
+path (m): the path follower stops less precisely at the end of a curve, and the forks enter from there."""
 SAMPLE_STEP_M = 0.02
 """Poses are checked against the obstacles every this many metres of path (m)."""
 
@@ -51,10 +60,14 @@ class Footprint:
     rear_x: float
     front_x: float
     half_width: float
+    field_m: float = 0.0
+    """How far (m) beyond `rear_x` the scanners' protective field reaches when the truck reverses."""
 
-    def corners(self, grow: float = 0.0) -> np.ndarray:
-        """The four corners (4, 2) counter-clockwise, grown by `grow` (m) on every side."""
-        x0, x1, w = self.rear_x - grow, self.front_x + grow, self.half_width + grow
+    def corners(self, grow: float = 0.0, field: bool = False) -> np.ndarray:
+        """The four corners (4, 2) counter-clockwise, grown by `grow` (m) on every side; with `field`, the
+        rear edge moved back by the reversing field."""
+        x0 = self.rear_x - grow - (self.field_m if field else 0.0)
+        x1, w = self.front_x + grow, self.half_width + grow
         return np.array([[x0, -w], [x1, -w], [x1, w], [x0, w]])
 
 
@@ -63,19 +76,32 @@ class Obstacle:
     """A known static obstacle, a convex polygon on the floor: `corners` (k, 2) in the world frame (m),
     counter-clockwise; `name` says what it is in messages (`the rack at 'r3'`). `approach_only`: only the
     empty truck passes it (the pallet to pick, and its rack: the loaded truck leaves them behind), so it is
-    kept clear of the empty outline."""
+    kept clear of the empty outline. `in_scan_plane`: it cuts the safety scanners' plane, so the reversing
+    field must keep clear of it too (False for a pallet on a rack's beams)."""
 
     name: str
     corners: np.ndarray
     approach_only: bool = False
+    in_scan_plane: bool = True
+    picked: bool = False
+    """The pallet to be picked: on the forks when the truck leaves (the rest of `approach_only` stays)."""
 
     @classmethod
     def box(
-        cls, name: str, pose: SE2, x0: float, x1: float, y0: float, y1: float, approach_only: bool = False
+        cls,
+        name: str,
+        pose: SE2,
+        x0: float,
+        x1: float,
+        y0: float,
+        y1: float,
+        approach_only: bool = False,
+        in_scan_plane: bool = True,
+        picked: bool = False,
     ) -> Obstacle:
         """The rectangle x0..x1, y0..y1 (m) of the frame `pose` (world)."""
         local = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
-        return cls(name, pose.apply(local), approach_only)
+        return cls(name, pose.apply(local), approach_only, in_scan_plane, picked)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,16 +203,35 @@ class ManoeuvreLimits:
     max_moves: int = 2
     curvature_share: tuple[float, ...] = (0.0, 0.5, 0.85)
     lengths_m: tuple[float, ...] = (0.3, 0.6, 0.9, 1.2, 1.6, 2.0)
+    final_line_m: float = 0.3
+    """An arc into the goal (`arc_then_line`) ends with a straight line of at least this (m)."""
+    run_in_m: float = 0.1
+    """A curve `connect` makes into the goal ends, where it can, with a straight line this long (m): the
+    truck then overshoots its stop straight, not turning on (and the forks enter from there)."""
     max_connects: int = 160
+    search_expansions: int = 1500
+    """When the moves above find nothing: poses the finer search (`_Search.finer`) expands at most."""
+    search_step_m: float = 0.3
+    """Its moves' length (m)."""
 
 
 def footprint_hits(
     poses: np.ndarray, footprint: Footprint, obstacles: Sequence[Obstacle], grow: float
 ) -> Obstacle | None:
-    """The first obstacle that the footprint (grown by `grow`, m) overlaps at any of `poses` (n, 3), or None.
+    """The first obstacle that the footprint (grown by `grow`, m; with its reversing field against those in
+    the scan plane) overlaps at any of `poses` (n, 3), or None.
 
     Separating axes between two convex polygons, for all poses at once."""
-    local = footprint.corners(grow)
+    if footprint.field_m > 0.0:
+        seen = _footprint_hits(poses, footprint.corners(grow, field=True), [o for o in obstacles if o.in_scan_plane])
+        if seen is not None:
+            return seen
+        obstacles = [o for o in obstacles if not o.in_scan_plane]
+    return _footprint_hits(poses, footprint.corners(grow), obstacles)
+
+
+def _footprint_hits(poses: np.ndarray, local: np.ndarray, obstacles: Sequence[Obstacle]) -> Obstacle | None:
+    """The first obstacle the rectangle `local` (4, 2, forklift frame) overlaps at any of `poses` (n, 3)."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     # truck corners (n, 4, 2) in the world
     tx = poses[:, 0, None] + c[:, None] * local[None, :, 0] - s[:, None] * local[None, :, 1]
@@ -313,27 +358,118 @@ class _Search:
 
     def finish(self, seq: tuple[ManoeuvreSegment, ...]) -> Manoeuvre | None:
         """The sequence ended forward at the goal, when that is clear: by an arc and a straight line into the
-        goal (`arc_then_line`, no search), else by the curve `connector` makes."""
+        goal (`arc_then_line`, no search), else by the curve `connector` makes into a straight run-in of
+        `run_in_m`, else by its curve into the goal itself (`CURVED_END_COST_M`)."""
         pose = seq[-1].end_pose if seq else self.start
         local = pose.inv() @ self.goal
         if local.x <= 0.05:  # the goal behind the truck: no forward curve (and no connect to pay for)
             self.no_curve += 1
-            return None
-        tail = arc_then_line(pose, self.goal, self.max_curvature * max(self.limits.curvature_share))
+            return self._back_in(seq)
+        tail = arc_then_line(
+            pose, self.goal, self.max_curvature * max(self.limits.curvature_share), self.limits.final_line_m
+        )
         if tail is not None and all(self.clear(t) for t in tail):
             return Manoeuvre((*seq, *tail))
+        backed = self._back_in(seq)
+        if backed is not None:
+            return backed
         if not seq:
             return None  # the connector's single curve is the roadmap's own re-plan, tried before
         if _rough_curvature(pose, self.goal) > ROUGH_CURVATURE_SLACK * self.max_curvature:
             self.no_curve += 1
             return None  # hopeless for `connect` (a coarse look at its Beziers): not worth its search
         self.connects += 1
-        try:
-            last = ManoeuvreSegment(self.connector(pose, self.goal, self.max_curvature), Direction.FORWARD)
-        except RoadmapError:
-            self.no_curve += 1
-            return None
-        return Manoeuvre((*seq, last)) if self.clear(last) else None
+        run_in = self.goal @ SE2(-self.limits.run_in_m, 0.0, 0.0)
+        line = ManoeuvreSegment(Line(run_in.xy, self.goal.xy), Direction.FORWARD)
+        ends: list[tuple[SE2, tuple[ManoeuvreSegment, ...]]] = [(run_in, (line,)), (self.goal, ())]
+        for end, run in ends:  # into a straight run-in first, else into the goal
+            try:
+                last = ManoeuvreSegment(self.connector(pose, end, self.max_curvature), Direction.FORWARD)
+            except RoadmapError:
+                continue
+            if self.clear(last) and all(self.clear(t) for t in run):
+                return Manoeuvre((*seq, last, *run))
+        self.no_curve += 1
+        return None
+
+    def finer(self) -> Manoeuvre | None:
+        """A finer search when the few long moves of `sequences` find nothing (a hybrid A*): short moves
+        (`search_step_m`, forward or in reverse, at five curvatures up to the limit's largest share), poses
+        kept once per cell (0.1 m, 7.5 deg, direction), the cheapest path plus the distance to the goal
+        first; each pose tries the arc and line into the goal, every eighth the connector's curves
+        (`finish`). At most `search_expansions` poses: as deterministic as the rest."""
+        k = self.max_curvature * max(self.limits.curvature_share)
+        steps = [(d, c) for d in (Direction.FORWARD, Direction.REVERSE) for c in (-k, -0.5 * k, 0.0, 0.5 * k, k)]
+        length, cell, turn = self.limits.search_step_m, 0.1, math.radians(7.5)
+
+        def estimate(pose: SE2) -> float:  # to the goal: the distance, and the heading still to turn
+            heading = abs(math.remainder(self.goal.yaw - pose.yaw, 2.0 * math.pi))
+            return float(np.hypot(*(pose.xy - self.goal.xy))) + heading / self.max_curvature
+
+        order = itertools.count()
+        heap: list[tuple[float, int, tuple[ManoeuvreSegment, ...]]] = [(estimate(self.start), next(order), ())]
+        closed: set[tuple[int, int, int, bool]] = set()
+        for expanded in itertools.count():
+            if not heap or expanded >= self.limits.search_expansions:
+                return None
+            _, _, seq = heapq.heappop(heap)
+            pose = seq[-1].end_pose if seq else self.start
+            forward = not seq or seq[-1].direction is Direction.FORWARD
+            key = (round(pose.x / cell), round(pose.y / cell), round(pose.yaw / turn) % 48, forward)
+            if key in closed:
+                continue
+            closed.add(key)
+            if seq:
+                found = self._finish_cheap(seq) if expanded % 8 else self.finish(seq)
+                if found is not None:
+                    return found
+            for d, c in steps:
+                step = _move(pose, d, c, length)
+                if not self.clear(step):
+                    continue
+                last = seq[-1] if seq else None
+                if last is not None and last.direction is d and math.isclose(_curvature(last), c, abs_tol=1e-6):
+                    grown = (*seq[:-1], _move(last.start_pose, d, c, last.curve.length + length))  # one longer move
+                else:
+                    grown = (*seq, step)
+                heapq.heappush(heap, (_cost(grown) + estimate(step.end_pose), next(order), grown))
+        return None
+
+    def _finish_cheap(self, seq: tuple[ManoeuvreSegment, ...]) -> Manoeuvre | None:
+        """`finish` by the arc and line alone (no connector's search)."""
+        pose = seq[-1].end_pose
+        tail = arc_then_line(
+            pose, self.goal, self.max_curvature * max(self.limits.curvature_share), self.limits.final_line_m
+        )
+        if tail is not None and all(self.clear(t) for t in tail):
+            return Manoeuvre((*seq, *tail))
+        return self._back_in(seq)
+
+    def _back_in(self, seq: tuple[ManoeuvreSegment, ...]) -> Manoeuvre | None:
+        """The sequence ended by an arc (and a line) forward to a pose `BACK_IN_M` ahead of the goal on its
+        line, then straight back into it: where the truck cannot swing into the goal, its rear too near
+        what stands behind it. Leaving loaded, the truck drives that line forward towards the pallet's
+        rack, so the loaded outline must clear the rack there too."""
+        pose = seq[-1].end_pose if seq else self.start
+        k = self.max_curvature * max(self.limits.curvature_share)
+        kept = [o for o in self.obstacles if o.approach_only and not o.picked]
+        for ahead in BACK_IN_M:
+            above = self.goal @ SE2(ahead, 0.0, 0.0)
+            tail = arc_then_line(pose, above, k, 0.0)
+            if tail is None:
+                continue
+            back = ManoeuvreSegment(Line(above.xy, self.goal.xy), Direction.REVERSE)
+            if not all(self.clear(t) for t in (*tail, back)):
+                continue
+            if footprint_hits(back.poses(), self.footprint, kept, self.limits.clearance_m) is None:
+                return Manoeuvre((*seq, *tail, back))
+        return None
+
+
+def _curvature(segment: ManoeuvreSegment) -> float:
+    """The signed curvature (1/m, in the direction of travel) of a move made by `_move`: 0 for a line."""
+    c = segment.curve
+    return float(c.curvature) if isinstance(c, Arc) else 0.0
 
 
 def _rough_curvature(pose: SE2, goal: SE2) -> float:
@@ -424,9 +560,12 @@ def plan_manoeuvre(
             break
         found = search.finish(seq)
         if found is not None:
-            cost = _cost(found.segments)
+            cost = _cost(found.segments) + (0.0 if isinstance(found.segments[-1].curve, Line) else CURVED_END_COST_M)
             if best is None or cost < best[0]:
                 best, moves = (cost, found), len(seq)
+    if best is None:
+        found = search.finer()
+        best = None if found is None else (0.0, found)
     if best is not None:
         return best[1]
     worst = ", ".join(f"{name} ({n})" for name, n in search.hits.most_common(2))

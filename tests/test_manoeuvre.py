@@ -106,6 +106,46 @@ def test_arc_then_line_turns_once_and_runs_straight_in():
     assert arc_then_line(start, SE2(1.0, -1.0, math.pi / 2), K_MAX) is None  # it would have to turn the other way
 
 
+def test_the_reversing_field_keeps_clear_of_what_cuts_the_scan_plane_only():
+    truck = dataclasses.replace(TRUCK, field_m=0.3)  # the field reaches 0.3 m behind the body's rear (-2.1)
+    behind = SE2(-2.3, 0.0, 0.0)  # something 0.2 m behind the truck
+    floor = [Obstacle.box("a pallet on the floor", behind, -1.0, 0.0, -0.5, 0.5)]
+    beams = [Obstacle.box("a pallet on the beams", behind, -1.0, 0.0, -0.5, 0.5, in_scan_plane=False)]
+    here = np.array([[0.0, 0.0, 0.0]])
+    assert footprint_hits(here, truck, floor, 0.0) is not None  # in the field: reversing would stop the truck
+    assert footprint_hits(here, truck, beams, 0.0) is None  # above the scan plane: the field does not see it
+    assert footprint_hits(np.array([[-0.3, 0.0, 0.0]]), truck, beams, 0.0) is not None  # the body still hits it
+
+
+def test_a_goal_with_no_room_to_swing_in_is_backed_into():
+    """A pre-pallet pose turned 90 deg across a 4.5 m aisle, 0.6 m off its middle: swinging in, the truck's
+    tail would sweep through the rack behind it, so it stops further in and backs straight into the goal;
+    the loaded truck leaves along that line, so the line keeps the loaded outline clear of the pallet's rack."""
+    loaded, empty = Footprint(-1.85, 1.25, 0.55, 0.19), Footprint(-1.85, 1.15, 0.55, 0.19)
+    goal = SE2(0.8, 0.62, math.radians(90.4))
+    obstacles = [
+        Obstacle.box("the pallet's rack", SE2(), -1.4, 1.4, 2.68, 3.88, approach_only=True),
+        Obstacle.box("the racks beside it", SE2(), 1.4, 20.0, 2.68, 3.88),
+        Obstacle.box("the racks before it", SE2(), -20.0, -1.4, 2.68, 3.88),
+        Obstacle.box("the rack behind", SE2(), -20.0, 20.0, -3.0, -1.82),
+        Obstacle.box("the pallet to pick", SE2(), 0.4, 1.25, 2.31, 3.7, approach_only=True, picked=True),
+    ]
+    m = plan_manoeuvre(SE2(), goal, K_MAX, loaded, obstacles, empty=empty)
+    last = m.segments[-1]
+    assert last.direction is Direction.REVERSE and last.curve.kind == "line"
+    assert last.end_pose.isclose(goal, atol=1e-6, atol_yaw=1e-6)
+    assert 0.2 < last.curve.length < 0.45
+    for a, b in zip(m.segments, m.segments[1:], strict=False):
+        assert a.end_pose.isclose(b.start_pose, atol=1e-6, atol_yaw=1e-6)
+    assert max(s.curve.max_abs_curvature() for s in m.segments) <= K_MAX * (1 + 1e-6)
+    kept = [o for o in obstacles if not o.approach_only]
+    for s in m.segments:
+        poses = s.poses()
+        assert footprint_hits(poses, loaded, kept, 0.1) is None
+        assert footprint_hits(poses, empty, [o for o in obstacles if o.approach_only], 0.1) is None
+    assert footprint_hits(last.poses(), loaded, obstacles[:1], 0.1) is None  # leaving loaded, towards the rack
+
+
 # -- the issue's case in the simulator ----------------------------------------------------------------
 
 

@@ -14,8 +14,11 @@ allows (`pickup_tolerances`); elsewhere it keeps the geometry's (the tips past t
 so a pallet the truck can reach fully is still re-planned to until it is. Before entering,
 `engagement_problems` checks the depth the forks will reach against the estimate (`SafetyCheck`).
 
-Public API: `pickup_tolerances`, `rack_limited_pose`, `engagement_problems`, `tip_depth`,
-`forks_outside_pockets`.
+`rack_engagement` is the rule itself, a pure function of the vehicle, the tolerances and where the pallet
+stands relative to its node (the benchmarks judge a refusal against the simulator's truth with it).
+
+Public API: `pickup_tolerances`, `rack_limited_pose`, `RackEngagement`, `rack_engagement`, `mast_reach`,
+`engagement_problems`, `tip_depth`, `forks_outside_pockets`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from palletpilot.control.vehicle import BodyParams
 from palletpilot.executor.core.behaviour import Context
 from palletpilot.executor.core.errors import NO_FEASIBLE_APPROACH, TaskFailed
 from palletpilot.geometry import SE2
@@ -44,21 +48,57 @@ def _geometry_tolerances(ctx: Context) -> AlignmentTolerances:
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class RackEngagement:
+    """How a pallet standing deeper in a rack than its node is entered, held back at the rack's limit (m):
+    the pallet `deeper_m` than the node, the truck's pallet node `back_m` short of serving it fully, the
+    fork tips then `reach_m` into the pallet where it needs `need_m` (`why`); `lead_m` is what a turned
+    mast's leading front corner gains on the straight mast's front."""
+
+    deeper_m: float
+    back_m: float
+    reach_m: float
+    need_m: float
+    why: str
+    lead_m: float
+
+    def enough(self, margin_m: float) -> bool:
+        """Do the forks carry the minimum engagement with `margin_m` (m) to spare?"""
+        return self.reach_m - margin_m >= self.need_m
+
+
+def mast_reach(body: BodyParams, rel: SE2) -> float:
+    """How far (m) past the rack node the truck at `rel` (its pose in the node's frame) goes, measured where
+    the mast meets the beam: the heels' x, plus what the leading front corner of a turned mast gains on the
+    straight mast's front."""
+    return rel.x + body.front_x * (math.cos(rel.yaw) - 1.0) + 0.5 * body.width * abs(math.sin(rel.yaw))
+
+
+def rack_engagement(
+    body: BodyParams, tolerances: AlignmentTolerances, pallet: PalletType, rack_overrun_m: float, rel: SE2
+) -> RackEngagement | None:
+    """The rack's limit on a pallet node at `rel` (the node that serves the pallet fully, in the rack node's
+    frame): how the truck, going at most `rack_overrun_m` past the rack node, enters the pallet; None when
+    the limit costs nothing (the node within it, or held back less than the far tolerance)."""
+    reach_past = mast_reach(body, rel)
+    excess = reach_past - rack_overrun_m
+    if excess <= 0.0:
+        return None
+    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
+    if back <= tolerances.longitudinal_far_m:
+        return None
+    need, why = pallet.required_engagement()
+    reach = min(tolerances.reach_m - back, pallet.length)  # how deep the tips go into the pallet, held back
+    return RackEngagement(rel.x, back, reach, need, why, reach_past - rel.x)
+
+
 def _at_rack_limit(ctx: Context) -> bool:
     """True when the current pallet node is a re-plan's node held back at the rack's overrun limit."""
     original = ctx.roadmap.node(ctx.memory.node_task().node)
     if original.height <= 0.0 or not ctx.memory.pallet_node or ctx.memory.pallet_node == original.id:
         return False
     rel = original.pose.inv() @ ctx.roadmap.node(ctx.memory.pallet_node).pose
-    return _mast_reach(ctx, rel) >= ctx.settings.rack_overrun - _AT_LIMIT_M
-
-
-def _mast_reach(ctx: Context, rel: SE2) -> float:
-    """How far (m) past the rack node the truck at `rel` (its pose in the node's frame) goes, measured where
-    the mast meets the beam: the heels' x, plus what the leading front corner of a turned mast gains on the
-    straight mast's front."""
-    body = ctx.params.body
-    return rel.x + body.front_x * (math.cos(rel.yaw) - 1.0) + 0.5 * body.width * abs(math.sin(rel.yaw))
+    return mast_reach(ctx.params.body, rel) >= ctx.settings.rack_overrun - _AT_LIMIT_M
 
 
 def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
@@ -86,37 +126,31 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
     if original.height <= 0.0:
         return pallet_node_pose
     rel = original.pose.inv() @ pallet_node_pose
-    excess = _mast_reach(ctx, rel) - ctx.settings.rack_overrun
-    if excess <= 0.0:
-        return pallet_node_pose
-    back = excess / max(math.cos(rel.yaw), 0.5)  # along the pallet's own axis
-    tol = _geometry_tolerances(ctx)
-    if back <= tol.longitudinal_far_m:
-        return pallet_node_pose
     pallet = ctx.pallet_type
-    reach = min(tol.reach_m - back, pallet.length)  # how deep the tips go into the pallet, held back
-    need, why = pallet.required_engagement()
+    held = rack_engagement(ctx.params.body, _geometry_tolerances(ctx), pallet, ctx.settings.rack_overrun, rel)
+    if held is None:
+        return pallet_node_pose
     margin = ctx.settings.longitudinal_margin
     figures = {
         "deeper_mm": round(rel.x * 1e3, 1),
-        "reach_mm": round(reach * 1e3, 1),
-        "required_mm": round(need * 1e3, 1),
+        "reach_mm": round(held.reach_m * 1e3, 1),
+        "required_mm": round(held.need_m * 1e3, 1),
         "margin_mm": round(margin * 1e3, 1),
         "pallet_length_mm": round(pallet.length * 1e3, 1),
     }
-    ctx.memory.record.setdefault("engagement", []).append({**figures, "enough": reach - margin >= need})
-    if reach - margin < need:
-        lead = _mast_reach(ctx, rel) - rel.x
+    ctx.memory.record.setdefault("engagement", []).append({**figures, "enough": held.enough(margin)})
+    if not held.enough(margin):
+        lead = held.lead_m
         turned = f" ({lead * 1e3:.0f} mm less turned {math.degrees(rel.yaw):+.0f} deg)" if lead > _AT_LIMIT_M else ""
         raise TaskFailed(
             NO_FEASIBLE_APPROACH,
             f"the pallet stands {rel.x * 1e3:.0f} mm deeper in the rack than node '{original.id}': the truck may "
             f"go {ctx.settings.rack_overrun * 1e3:.0f} mm past it{turned} before the mast meets the rack, and the fork "
-            f"tips could then reach {reach * 1e3:.0f} mm into the pallet; it needs {need * 1e3:.0f} mm ({why}) "
-            f"and {margin * 1e3:.0f} mm margin",
+            f"tips could then reach {held.reach_m * 1e3:.0f} mm into the pallet; it needs {held.need_m * 1e3:.0f} mm "
+            f"({held.why}) and {margin * 1e3:.0f} mm margin",
         )
     ctx.log("short_engagement", **figures)
-    return pallet_node_pose @ SE2(-back, 0.0, 0.0)
+    return pallet_node_pose @ SE2(-held.back_m, 0.0, 0.0)
 
 
 def tip_depth(forks: ForkGeometry, T_pallet_forklift: SE2) -> float:
@@ -139,14 +173,14 @@ def engagement_problems(forks: ForkGeometry, pallet: PalletType, T_pallet_forkli
     ]
 
 
-def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
-    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one
-    line per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork
-    tip's depth. Both poses are in the world frame (SE2)."""
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2, margin_m: float = 0.0) -> list[str]:
+    """Where a fork would not enter its pocket with `margin_m` (m) to spare on each side, entering straight
+    ahead from `T_world_forklift`: one line per fork with how far (mm) its side passes outside the pocket
+    (less the margin) at the entry face or at the fork tip's depth. Both poses are in the world frame (SE2)."""
     forks, pallet = ctx.forks, ctx.pallet_type
     T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
     depth = min(pallet.length, forks.length)
-    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width - margin_m
     problems = []
     for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
         worst = 0.0

@@ -15,7 +15,9 @@ floor: from where the mast would meet the front beam, `Settings.rack_overrun`, `
 nodes, grown by `STORED_PALLET_MARGIN_M` on the floor, `RACK_PALLET_MARGIN_M` in a rack), and the pallet to
 be picked where it was estimated. The truck's outline is the loaded one (body, and a pallet on the forks),
 since it leaves the same way with the load; the empty one for the pallet to pick and its rack, which only
-the empty truck passes. Anything else (people, boxes) the safety scanners watch for, as on every route.
+the empty truck passes. Behind the body, the scanners' reversing field is kept clear of what cuts the
+scan plane (racks, pallets on the floor), not of pallets stored on a rack's beams above it. Anything
+else (people, boxes) the safety scanners watch for, as on every route.
 A re-plan's single approach curve is held to the same (`check_curve_clear`): one that would pass too near
 counts as no curve from that node.
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -68,13 +71,13 @@ def truck_footprint(ctx: Context, load_front_x: float | None = None) -> Footprin
     """The truck's outline in the forklift frame (m): its body, and the forks carrying a pallet of the task's
     type (`load_front_x`: the load's far end, by default the pallet's when the forks are fully in; or the
     fork tips when they reach further); behind it, the safety scanners' protective field when reversing at
-    `MANOEUVRE_SPEED` (a rack inside it would stop the truck)."""
+    `MANOEUVRE_SPEED` (`Footprint.field_m`: a rack inside it would stop the truck)."""
     params, pallet = ctx.params, ctx.pallet_type
     body, scanner = params.body, params.safety_scanner
     load = ENTRY_GAP_M + pallet.length if load_front_x is None else load_front_x
     field = 0.0 if scanner is None else scanner.protective_margin + stopping_distance(params, MANOEUVRE_SPEED)
     behind = max(0.0, field - ManoeuvreLimits.clearance_m)  # the field is the margin there
-    return Footprint(body.rear_x - behind, max(ctx.forks.tip_x, load), 0.5 * max(body.width, pallet.width))
+    return Footprint(body.rear_x, max(ctx.forks.tip_x, load), 0.5 * max(body.width, pallet.width), behind)
 
 
 def static_obstacles(ctx: Context, target: SE2) -> list[Obstacle]:
@@ -83,6 +86,8 @@ def static_obstacles(ctx: Context, target: SE2) -> list[Obstacle]:
     passed by the empty truck only (`Obstacle.approach_only`)."""
     pallet, st = ctx.pallet_type, ctx.settings
     face = st.rack_overrun + ctx.params.body.front_x  # the rack's front beam, in the node's frame (m)
+    scanner = ctx.params.safety_scanner
+    scan_height = math.inf if scanner is None else scanner.scan_height
     out = []
     for node in ctx.roadmap.nodes():
         if node.temporary or node.type not in (NodeType.PALLET, NodeType.DROP):
@@ -102,11 +107,21 @@ def static_obstacles(ctx: Context, target: SE2) -> list[Obstacle]:
             )
         if not mine:
             m = RACK_PALLET_MARGIN_M if node.height > 0.0 else STORED_PALLET_MARGIN_M
-            x0, half = ENTRY_GAP_M - m, 0.5 * pallet.width + m
-            out.append(Obstacle.box(f"a pallet at '{node.id}'", node.pose, x0, x0 + pallet.length + 2 * m, -half, half))
+            x0, x1, half = ENTRY_GAP_M - m, ENTRY_GAP_M + pallet.length + m, 0.5 * pallet.width + m
+            seen = node.height < scan_height  # one on a rack's beams is above the scanners' plane
+            out.append(Obstacle.box(f"a pallet at '{node.id}'", node.pose, x0, x1, -half, half, in_scan_plane=seen))
     half = 0.5 * pallet.width + TARGET_MARGIN_M
     out.append(
-        Obstacle.box("the pallet to pick", target, -TARGET_MARGIN_M, pallet.length + TARGET_MARGIN_M, -half, half, True)
+        Obstacle.box(
+            "the pallet to pick",
+            target,
+            -TARGET_MARGIN_M,
+            pallet.length + TARGET_MARGIN_M,
+            -half,
+            half,
+            True,
+            picked=True,
+        )
     )
     return out
 

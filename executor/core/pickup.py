@@ -298,8 +298,14 @@ class EstimatePallet(Behaviour):
         node = ctx.roadmap.node(ctx.memory.pallet_node)
         al = check_alignment(est.T_world_pallet, node, pickup_tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
         world = est.T_world_pallet.to_se2()
+        # Where the truck stands matters too: the forks enter from here, and `SafetyCheck` refuses a stance
+        # that puts a fork beside its pocket. Judged with `STANCE_MARGIN_M` to spare, so a stance at the edge
+        # (one localization fix in, the next out) is approached again rather than refused.
+        here = ctx.vehicle.localization()
+        stance = forks_outside_pockets(ctx, world, here, STANCE_MARGIN_M) if al.aligned else []
         entry: dict[str, Any] = {
             "problems": list(al.problems),
+            "stance_problems": stance,
             "attempt": ctx.memory.attempts,
             "against_node": ctx.memory.pallet_node,
             "T_world_pallet": {
@@ -319,6 +325,8 @@ class EstimatePallet(Behaviour):
         }
         ctx.memory.record.setdefault("estimates", []).append(entry)
         ctx.log("pallet_estimate", **entry)
+        if al.aligned and stance and ctx.settings.adapt and ctx.memory.attempts < ctx.settings.max_attempts:
+            return "misaligned"  # the pallet is where the node says, the truck is not: back off and approach again
         if al.aligned:
             return "aligned"
         if not ctx.settings.adapt:  # `--no-adapt`: no re-plan, so never entered as it stands
@@ -339,6 +347,11 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
+
+
+STANCE_MARGIN_M = 0.01
+"""m: a stance judged before entering leaves this much of each pocket's free play to spare (about two
+sigma of the localization's lateral noise), or the truck backs off and approaches again while it may."""
 
 
 def _frame_policy(ctx: Context) -> FramePolicy:
