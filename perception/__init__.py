@@ -27,7 +27,8 @@ Public API:
   frames a standpoint takes: more while the fused yaw is uncertain), `PalletNotFound` (reason),
   `PalletEstimate`, `PalletEstimatorConfig`; its pieces: `perception.pallet_estimate` (tuning, result,
   failure, fusion), `perception.pallet_face` (rays and the entry-face plane), `perception.pallet_model`
-  (the pallet model and its scores, the pocket check), `perception.pallet_deck` (yaw from the deck);
+  (the pallet model and its scores, the pocket check), `perception.pallet_steps` (the steps on one
+  frame), `perception.pallet_deck` (yaw from the deck);
   `perception.alignment`: `AlignmentTolerances`, `check_alignment` (against the pallet node).
 - `perception.segmentation`: `SegmentationService`, `OnnxSegmenter` (the shipped `DEFAULT_MODEL`),
   `GroundTruthSegmenter`, `evaluate_segmenter`, `SegmentationScore` (pooled per-class IoU),
