@@ -179,6 +179,7 @@ NOT_JOURNALLED = {
     "last_motion_s": "the checkpoint's time: nothing moved since",
     "trusted_calibration": "a resumed run trusts anew (or perception's last good calibration seeds it)",
     "planned_paths": "journalled as the checkpoint's `planned`, each path once",
+    "stance": "a resumed safety check takes its own localization fixes",
 }
 """Why each other `TaskMemory` field is not in a checkpoint's `ctx` (rebuilt or stored elsewhere)."""
 
@@ -221,13 +222,14 @@ class TaskMemory:
     calibration: Calibration | None = None
     estimate: PalletEstimate | None = None
     estimated_pallet: SE3 | None = None  # T_world_pallet of the last fused estimate (the re-plan's input)
+    stance: SE2 | None = None  # where the truck stood for that estimate (world: its frames' mean fix)
     temporary: list[TemporaryNodes] = field(default_factory=list)
     record: dict[str, Any] = field(default_factory=dict)
 
     def start_task(self, task: Task) -> None:
         """A new task: no attempts, calibration, estimate or temporary nodes yet (the rest carries over)."""
         self.task, self.attempts, self.calibration, self.estimate, self.estimated_pallet = task, 0, None, None, None
-        self.temporary, self.route_to_pre = [], []
+        self.temporary, self.route_to_pre, self.stance = [], [], None
 
     def task_of(self, kind: type[T]) -> T:
         """The current task, a `kind`; `TypeError` for any other (a bug: an internal error)."""

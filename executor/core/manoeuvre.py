@@ -76,7 +76,7 @@ def truck_footprint(ctx: Context, load_front_x: float | None = None) -> Footprin
     body, scanner = params.body, params.safety_scanner
     load = ENTRY_GAP_M + pallet.length if load_front_x is None else load_front_x
     field = 0.0 if scanner is None else scanner.protective_margin + stopping_distance(params, MANOEUVRE_SPEED)
-    behind = max(0.0, field - ManoeuvreLimits.clearance_m)  # the field is the margin there
+    behind = field  # the clearance beyond it is the margin for the path follower's tracking
     return Footprint(body.rear_x, max(ctx.forks.tip_x, load), 0.5 * max(body.width, pallet.width), behind)
 
 

@@ -257,7 +257,7 @@ class EstimatePallet(Behaviour):
                 limit_deg=ctx.settings.estimate_yaw_sigma_deg,
             )
             return None
-        return self._judge(ctx, fused)
+        return self._judge(ctx, fused, _mean_pose([pose for _, pose, _ in self.frames]))
 
     def _restart(self, ctx: Context) -> None:
         """Forget the frames and estimates taken so far (the truck moved): start the first round again."""
@@ -291,18 +291,19 @@ class EstimatePallet(Behaviour):
         self.look_at = now + RECHECK_S
         return True
 
-    def _judge(self, ctx: Context, est: PalletEstimate) -> str:
+    def _judge(self, ctx: Context, est: PalletEstimate, stood: SE2) -> str:
+        """`aligned` or `misaligned` for the fused estimate `est`, the truck having stood at `stood` (world)."""
         assert est.T_world_pallet is not None
         _check_envelope(ctx, est.T_world_pallet.to_se2(), ctx.memory.estimated_pallet)
         ctx.memory.estimate, ctx.memory.estimated_pallet = est, est.T_world_pallet
         node = ctx.roadmap.node(ctx.memory.pallet_node)
         al = check_alignment(est.T_world_pallet, node, pickup_tolerances(ctx), est.spread)  # offsets + 2 stated sigmas
         world = est.T_world_pallet.to_se2()
-        # Where the truck stands matters too: the forks enter from here, and `SafetyCheck` refuses a stance
-        # that puts a fork beside its pocket. Judged with `STANCE_MARGIN_M` to spare, so a stance at the edge
-        # (one localization fix in, the next out) is approached again rather than refused.
-        here = ctx.vehicle.localization()
-        stance = forks_outside_pockets(ctx, world, here, STANCE_MARGIN_M) if al.aligned else []
+        # Where the truck stands matters too: the forks enter from there, and `SafetyCheck` refuses a stance
+        # that puts a fork beside its pocket. Judged from the mean of the frames' localization fixes (one
+        # fix is noisier), with `STANCE_MARGIN_M` to spare.
+        ctx.memory.stance = stood
+        stance = forks_outside_pockets(ctx, world, stood, STANCE_MARGIN_M) if al.aligned else []
         entry: dict[str, Any] = {
             "problems": list(al.problems),
             "stance_problems": stance,
@@ -349,9 +350,23 @@ class EstimatePallet(Behaviour):
             self.job.cancel()
 
 
-STANCE_MARGIN_M = 0.01
-"""m: a stance judged before entering leaves this much of each pocket's free play to spare (about two
-sigma of the localization's lateral noise), or the truck backs off and approaches again while it may."""
+STANCE_MARGIN_M = 0.0
+"""m: a stance judged before entering leaves this much of each pocket's free play to spare, or the truck
+backs off and approaches again while it may (`SafetyCheck` refuses what has none)."""
+
+
+STANCE_FIXES = 5
+"""Localization fixes (one a tick, standing) whose mean `SafetyCheck` takes for the truck's stance, unless
+the estimate's own (`TaskMemory.stance`) is still where the truck stands: within `STANCE_SAME_M` and
+`STANCE_SAME_DEG` of a fix (the localization's noise; it has not moved)."""
+STANCE_SAME_M = 0.02
+STANCE_SAME_DEG = 0.5
+
+
+def _mean_pose(poses: list[SE2]) -> SE2:
+    """The mean of poses taken standing (world): x and y averaged, the yaw by its mean direction."""
+    yaw = math.atan2(sum(math.sin(p.yaw) for p in poses), sum(math.cos(p.yaw) for p in poses))
+    return SE2(sum(p.x for p in poses) / len(poses), sum(p.y for p in poses) / len(poses), yaw)
 
 
 def _frame_policy(ctx: Context) -> FramePolicy:
@@ -596,9 +611,27 @@ class Replan(Behaviour):
 
 
 class SafetyCheck(Behaviour):
-    """Both fork-tip beams must pass through the pockets: never enter when one stops at the pallet."""
+    """Both fork-tip beams must pass through the pockets: never enter when one stops at the pallet. With an
+    estimate, the forks must also lie in the pockets from where the truck stands: the stance the estimate
+    was judged from, while the truck is still there, else the mean of `STANCE_FIXES` localization fixes
+    taken standing (one fix's noise alone could refuse a good stance)."""
+
+    def start(self, ctx: Context) -> None:
+        ctx.vehicle.stop()
+        self.fixes: list[SE2] = []
+        stood, here = ctx.memory.stance, ctx.vehicle.localization()
+        if (
+            stood is not None
+            and here.distance_to(stood) < STANCE_SAME_M
+            and abs(math.remainder(here.yaw - stood.yaw, 2.0 * math.pi)) < math.radians(STANCE_SAME_DEG)
+        ):
+            self.fixes = [stood] * STANCE_FIXES  # the estimate's own stance: both checks judge the same pose
 
     def update(self, ctx: Context) -> str | None:
+        if ctx.memory.estimated_pallet is not None and len(self.fixes) < STANCE_FIXES:
+            self.fixes.append(ctx.vehicle.localization())
+            if len(self.fixes) < STANCE_FIXES:
+                return None
         pre = ctx.roadmap.node(ctx.memory.pre_node)
         pallet = ctx.roadmap.node(ctx.memory.pallet_node)
         face = pre.pose.distance_to(pallet.pose) + ENTRY_GAP_M - ctx.forks.tip_x  # tips to the entry face
@@ -614,7 +647,7 @@ class SafetyCheck(Behaviour):
         # and at the pallet node the forks must carry the pallet type's minimum engagement (its balance).
         if ctx.memory.estimated_pallet is not None:
             T_world_pallet = ctx.memory.estimated_pallet.to_se2()
-            problems = forks_outside_pockets(ctx, T_world_pallet, ctx.vehicle.localization())
+            problems = forks_outside_pockets(ctx, T_world_pallet, _mean_pose(self.fixes))
             at_node = T_world_pallet.inv() @ pallet.pose
             problems += engagement_problems(ctx.forks, ctx.pallet_type, at_node, margin=0.0)
             if problems:
