@@ -65,6 +65,9 @@ TARGET_MARGIN_M = 0.05
 """The pallet to be picked stands within this much (m) of its estimate."""
 MANOEUVRE_SPEED = 0.3
 """m/s on a manoeuvre's moves."""
+FIELD_TRACKING_M = 0.05
+"""m: the reversing field is kept this much clear of what cuts the scan plane (beyond the field itself), for
+the path follower's tracking: with none, a loaded exit stopped on rack uprights inside its field."""
 
 
 def truck_footprint(ctx: Context, load_front_x: float | None = None) -> Footprint:
@@ -76,7 +79,7 @@ def truck_footprint(ctx: Context, load_front_x: float | None = None) -> Footprin
     body, scanner = params.body, params.safety_scanner
     load = ENTRY_GAP_M + pallet.length if load_front_x is None else load_front_x
     field = 0.0 if scanner is None else scanner.protective_margin + stopping_distance(params, MANOEUVRE_SPEED)
-    behind = field  # the clearance beyond it is the margin for the path follower's tracking
+    behind = field - ManoeuvreLimits.clearance_m + FIELD_TRACKING_M  # the field, and a margin for tracking
     return Footprint(body.rear_x, max(ctx.forks.tip_x, load), 0.5 * max(body.width, pallet.width), behind)
 
 
