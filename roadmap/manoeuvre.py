@@ -209,10 +209,10 @@ class ManoeuvreLimits:
     """A curve `connect` makes into the goal ends, where it can, with a straight line this long (m): the
     truck then overshoots its stop straight, not turning on (and the forks enter from there)."""
     max_connects: int = 160
-    search_expansions: int = 1500
+    search_expansions: int = 4000
     """When the moves above find nothing: poses the finer search (`_Search.finer`) expands at most."""
-    search_step_m: float = 0.3
-    """Its moves' length (m)."""
+    search_steps_m: tuple[float, ...] = (0.6, 0.3)
+    """Its moves' lengths (m): longer ones first (fewer moves to drive), then shorter ones where they find none."""
 
 
 def footprint_hits(
@@ -392,15 +392,15 @@ class _Search:
         self.no_curve += 1
         return None
 
-    def finer(self) -> Manoeuvre | None:
+    def finer(self, length: float) -> Manoeuvre | None:
         """A finer search when the few long moves of `sequences` find nothing (a hybrid A*): short moves
-        (`search_step_m`, forward or in reverse, at five curvatures up to the limit's largest share), poses
+        (`length` m, forward or in reverse, at five curvatures up to the limit's largest share), poses
         kept once per cell (0.1 m, 7.5 deg, direction), the cheapest path plus the distance to the goal
         first; each pose tries the arc and line into the goal, every eighth the connector's curves
         (`finish`). At most `search_expansions` poses: as deterministic as the rest."""
         k = self.max_curvature * max(self.limits.curvature_share)
         steps = [(d, c) for d in (Direction.FORWARD, Direction.REVERSE) for c in (-k, -0.5 * k, 0.0, 0.5 * k, k)]
-        length, cell, turn = self.limits.search_step_m, 0.1, math.radians(7.5)
+        cell, turn = 0.1, math.radians(7.5)
 
         def estimate(pose: SE2) -> float:  # to the goal: the distance, and the heading still to turn
             heading = abs(math.remainder(self.goal.yaw - pose.yaw, 2.0 * math.pi))
@@ -564,7 +564,7 @@ def plan_manoeuvre(
             if best is None or cost < best[0]:
                 best, moves = (cost, found), len(seq)
     if best is None:
-        found = search.finer()
+        found = next((m for m in map(search.finer, limits.search_steps_m) if m is not None), None)
         best = None if found is None else (0.0, found)
     if best is not None:
         return best[1]
