@@ -33,8 +33,6 @@ import argparse
 import collections
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -43,6 +41,7 @@ import yaml
 
 from palletpilot.executor.apps.cli_args import count, names, seed
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.processes import spawn_pool
 
 if TYPE_CHECKING:
     from palletpilot.roadmap import Roadmap
@@ -181,9 +180,8 @@ def _rack_verdict(world: Roadmap, map_name: str, node: str, target: dict) -> str
 
     from palletpilot.control.vehicle import load_vehicle
     from palletpilot.executor.core.behaviour import Settings
-    from palletpilot.executor.core.engagement import rack_engagement
+    from palletpilot.executor.core.engagement import geometry_tolerances, rack_engagement
     from palletpilot.geometry import SE2
-    from palletpilot.perception.alignment import AlignmentTolerances
     from palletpilot.perception.specs import ENTRY_GAP_M, load_forks, pallet_type
     from palletpilot.roadmap.mapfile import map_vehicle_file
 
@@ -192,13 +190,7 @@ def _rack_verdict(world: Roadmap, map_name: str, node: str, target: dict) -> str
     st = Settings()
     forks, pallet = load_forks(MISSIONS / "forks.yaml"), pallet_type("eur")
     vehicle = load_vehicle(map_vehicle_file(MISSIONS / map_name) or MISSIONS / "forklift.yaml")
-    tol = AlignmentTolerances.from_geometry(
-        forks,
-        pallet,
-        lateral_margin_m=st.lateral_margin,
-        longitudinal_margin_m=st.longitudinal_margin,
-        yaw_limit_deg=st.yaw_limit_deg,
-    )
+    tol = geometry_tolerances(forks, pallet, st)
     gap = SE2(ENTRY_GAP_M, 0.0, 0.0)
     rel = gap @ SE2(target["dx"], target["dy"], math.radians(target["dyaw_deg"])) @ gap.inv()  # serving node
     held = rack_engagement(vehicle.body, tol, pallet, st.rack_overrun, rel)
@@ -281,8 +273,7 @@ def run(args: argparse.Namespace) -> dict:
     modes = [m for mode in args.modes for m in _rows(mode, list(args.labels))]
     jobs = [(s, m) for m in modes for s in specs]
     if args.jobs > 1:
-        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+        with spawn_pool(args.jobs) as pool:
             outcomes = list(pool.map(_one, jobs))
     else:
         outcomes = [_one(j) for j in jobs]

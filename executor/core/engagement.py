@@ -17,8 +17,8 @@ so a pallet the truck can reach fully is still re-planned to until it is. Before
 `rack_engagement` is the rule itself, a pure function of the vehicle, the tolerances and where the pallet
 stands relative to its node (the benchmarks judge a refusal against the simulator's truth with it).
 
-Public API: `pickup_tolerances`, `rack_limited_pose`, `RackEngagement`, `rack_engagement`, `mast_reach`,
-`engagement_problems`, `tip_depth`, `forks_outside_pockets`.
+Public API: `geometry_tolerances`, `pickup_tolerances`, `rack_limited_pose`, `RackEngagement`,
+`rack_engagement`, `mast_reach`, `engagement_problems`, `tip_depth`, `forks_outside_pockets`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import dataclasses
 import math
 
 from palletpilot.control.vehicle import BodyParams
-from palletpilot.executor.core.behaviour import Context
+from palletpilot.executor.core.behaviour import Context, Settings
 from palletpilot.executor.core.errors import NO_FEASIBLE_APPROACH, TaskFailed
 from palletpilot.geometry import SE2
 from palletpilot.perception.alignment import AlignmentTolerances
@@ -37,14 +37,15 @@ _AT_LIMIT_M = 1e-3
 """A node this close (m) to the rack's overrun limit stands at it."""
 
 
-def _geometry_tolerances(ctx: Context) -> AlignmentTolerances:
-    st = ctx.settings
+def geometry_tolerances(forks: ForkGeometry, pallet: PalletType, settings: Settings) -> AlignmentTolerances:
+    """The alignment tolerances (pallet frame) that the pockets leave the forks `forks` in `pallet`, less
+    the margins of `settings`: the Pickup's and the benchmark's verdicts judge by the same ones."""
     return AlignmentTolerances.from_geometry(
-        ctx.forks,
-        ctx.pallet_type,
-        lateral_margin_m=st.lateral_margin,
-        longitudinal_margin_m=st.longitudinal_margin,
-        yaw_limit_deg=st.yaw_limit_deg,
+        forks,
+        pallet,
+        lateral_margin_m=settings.lateral_margin,
+        longitudinal_margin_m=settings.longitudinal_margin,
+        yaw_limit_deg=settings.yaw_limit_deg,
     )
 
 
@@ -104,7 +105,7 @@ def _at_rack_limit(ctx: Context) -> bool:
 def pickup_tolerances(ctx: Context) -> AlignmentTolerances:
     """The alignment tolerances of this truck's forks and the pallet type, less the Settings' margins; at a
     node held back at the rack's limit the far one is what the minimum engagement allows (m)."""
-    tol = _geometry_tolerances(ctx)
+    tol = geometry_tolerances(ctx.forks, ctx.pallet_type, ctx.settings)
     if not _at_rack_limit(ctx):
         return tol
     need, _ = ctx.pallet_type.required_engagement()
@@ -127,7 +128,13 @@ def rack_limited_pose(ctx: Context, pallet_node_pose: SE2) -> SE2:
         return pallet_node_pose
     rel = original.pose.inv() @ pallet_node_pose
     pallet = ctx.pallet_type
-    held = rack_engagement(ctx.params.body, _geometry_tolerances(ctx), pallet, ctx.settings.rack_overrun, rel)
+    held = rack_engagement(
+        ctx.params.body,
+        geometry_tolerances(ctx.forks, ctx.pallet_type, ctx.settings),
+        pallet,
+        ctx.settings.rack_overrun,
+        rel,
+    )
     if held is None:
         return pallet_node_pose
     margin = ctx.settings.longitudinal_margin
@@ -173,14 +180,14 @@ def engagement_problems(forks: ForkGeometry, pallet: PalletType, T_pallet_forkli
     ]
 
 
-def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2, margin_m: float = 0.0) -> list[str]:
-    """Where a fork would not enter its pocket with `margin_m` (m) to spare on each side, entering straight
-    ahead from `T_world_forklift`: one line per fork with how far (mm) its side passes outside the pocket
-    (less the margin) at the entry face or at the fork tip's depth. Both poses are in the world frame (SE2)."""
+def forks_outside_pockets(ctx: Context, T_world_pallet: SE2, T_world_forklift: SE2) -> list[str]:
+    """Where a fork would not enter its pocket, entering straight ahead from `T_world_forklift`: one line
+    per fork with how far (mm) its side passes outside the pocket at the entry face or at the fork tip's
+    depth. Both poses are in the world frame (SE2)."""
     forks, pallet = ctx.forks, ctx.pallet_type
     T_pallet_forklift = T_world_pallet.inv() @ T_world_forklift
     depth = min(pallet.length, forks.length)
-    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width - margin_m
+    half_free = 0.5 * pallet.pocket_width - 0.5 * forks.width
     problems = []
     for name, fork_y, pocket_y in zip(("left", "right"), forks.centres_y, pallet.pocket_centres_y, strict=True):
         worst = 0.0

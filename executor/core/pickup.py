@@ -301,9 +301,9 @@ class EstimatePallet(Behaviour):
         world = est.T_world_pallet.to_se2()
         # Where the truck stands matters too: the forks enter from there, and `SafetyCheck` refuses a stance
         # that puts a fork beside its pocket. Judged from the mean of the frames' localization fixes (one
-        # fix is noisier), with `STANCE_MARGIN_M` to spare.
+        # fix is noisier).
         ctx.memory.stance = stood
-        stance = forks_outside_pockets(ctx, world, stood, STANCE_MARGIN_M) if al.aligned else []
+        stance = forks_outside_pockets(ctx, world, stood) if al.aligned else []
         entry: dict[str, Any] = {
             "problems": list(al.problems),
             "stance_problems": stance,
@@ -348,11 +348,6 @@ class EstimatePallet(Behaviour):
     def stop(self, ctx: Context) -> None:
         if self.job is not None:
             self.job.cancel()
-
-
-STANCE_MARGIN_M = 0.0
-"""m: a stance judged before entering leaves this much of each pocket's free play to spare, or the truck
-backs off and approaches again while it may (`SafetyCheck` refuses what has none)."""
 
 
 STANCE_FIXES = 5
