@@ -27,9 +27,7 @@ import os
 import tempfile
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +36,7 @@ from palletpilot.executor.apps.suite import RunSpec, Suite, SuiteError, load_sui
 from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ray
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.processes import spawn_pool
 
 SUITE = bundled_path("missions", "suite", "suite.yaml")
 DEFAULT_CASE = "floor_envelope"
@@ -81,8 +80,7 @@ def _local(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
     """The runs in `jobs` worker processes, as `palletpilot test --executor local` runs them."""
     if jobs == 1:
         return [run_case(spec, report) for spec in specs]
-    # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+    with spawn_pool(jobs) as pool:
         return list(pool.map(run_case, specs, [report] * len(specs)))
 
 

@@ -35,8 +35,6 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +44,7 @@ import yaml
 from palletpilot.bench.missions import RACK_DEEPER_MAX_M, draw_pickup, example_pallet_nodes
 from palletpilot.executor.apps.cli_args import count, number, seed
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.processes import spawn_pool
 from palletpilot.sim.faults import FAULT_KINDS
 
 MISSIONS = bundled_path("missions")
@@ -321,8 +320,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Run every seeded faulty mission and return the figures."""
     specs = _scenarios(args.runs, args.seed, args.kill_rate)
     if args.jobs > 1:
-        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+        with spawn_pool(args.jobs) as pool:
             outcomes = list(pool.map(_one, specs))
     else:
         outcomes = [_one(s) for s in specs]

@@ -35,8 +35,6 @@ import math
 import shutil
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +45,7 @@ from palletpilot.bench.missions import start_node
 from palletpilot.executor.apps.cli_args import count, names, seed
 from palletpilot.geometry import SE2
 from palletpilot.geometry.fileio import bundled_path
+from palletpilot.geometry.processes import spawn_pool
 from palletpilot.perception.specs import PalletType, pallet_pose_at_node
 
 MISSIONS = bundled_path("missions")
@@ -356,8 +355,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     specs = _specs(args.runs, args.seed, families)
     t0 = time.perf_counter()
     if args.jobs > 1:
-        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+        with spawn_pool(args.jobs) as pool:
             outcomes = list(pool.map(_one, specs))
     else:
         outcomes = [_one(s) for s in specs]

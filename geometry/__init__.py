@@ -9,6 +9,7 @@ Public API:
 - `wrap_angle`, `angle_diff`: radians.
 - `PalletpilotError`: base of every expected error; `GeometryError`; `OutputError` (a write failed).
 - `fileio`: YAML + pydantic loading, `bundled_path`, atomic writes (`write_atomic`, `write_json`), strict JSON.
+- `processes`: `spawn_pool(jobs)`, the worker processes of every benchmark, campaign and renderer.
 
 Frames are named `T_a_b` (maps points from b into a); see ARCHITECTURE.md.
 """

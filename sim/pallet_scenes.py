@@ -35,15 +35,14 @@ Public API: `SceneSettings`, `render_scene`, `pallet_boxes`, `generate_scenes` (
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from palletpilot.geometry.fileio import write_atomic
+from palletpilot.geometry.processes import spawn_pool
 from palletpilot.perception.frames import SemanticClass
 from palletpilot.perception.segmentation_data import LABELS_SUFFIX
 from palletpilot.sim.box_raster import Box, Canvas
@@ -482,6 +481,5 @@ def generate_scenes(
     work = [(out, seed, i, settings) for i in range(start, start + frames)]
     if jobs <= 1:
         return [_write_frame(w) for w in work]
-    # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-    with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+    with spawn_pool(jobs) as pool:
         return list(pool.map(_write_frame, work, chunksize=8))

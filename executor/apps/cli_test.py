@@ -22,8 +22,7 @@ import argparse
 import json
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
+from concurrent.futures import as_completed
 from pathlib import Path
 
 from palletpilot.executor.apps.cli_args import count, out_file, out_folder
@@ -34,6 +33,7 @@ from palletpilot.executor.apps.suite_ray import Executor, ray_missing, run_on_ra
 from palletpilot.executor.apps.suite_report import junit_xml, progress_line, suite_json, summary_table
 from palletpilot.executor.apps.suite_run import RunResult, run_case
 from palletpilot.geometry.fileio import write_atomic, write_json
+from palletpilot.geometry.processes import spawn_pool
 
 DEFAULT_REPORT_ROOT = Path("out") / "test"
 """Where `palletpilot test` keeps the runs' reports without --report (`out/` is ignored by git)."""
@@ -48,8 +48,7 @@ def _run_all(specs: list[RunSpec], report: Path, jobs: int) -> list[RunResult]:
             results[k] = run_case(spec, report)
             print(progress_line(results[k], k + 1, total), file=sys.stderr, flush=True)
     else:
-        # spawned, never forked: a fork of a process that has used OpenCV can hang (opencv/opencv#5150)
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        with spawn_pool(jobs) as pool:
             futures = {pool.submit(run_case, spec, report): k for k, spec in enumerate(specs)}
             for done, fut in enumerate(as_completed(futures), start=1):
                 k = futures[fut]
