@@ -299,7 +299,9 @@ def _check_pockets(
     s_rel = fc.s - s0
     # Occupancy: the middle of each pocket must see past the face, the middle of each column must be on it.
     res = fc.w - fc.nd / fc.D
-    on_face = np.abs(res) < cfg.truncation_sigma * sigma
+    # On the face within the noise, or within the build tolerance (in inverse depth) where the noise is
+    # smaller than that (a near, low-noise camera: a part built 2 mm proud is still on the face).
+    on_face = np.abs(res) < max(cfg.truncation_sigma * sigma, cfg.build_tolerance_m / fc.D**2)
     # Rays the model sends into the pocket (not onto a block's side wall, seen at a slant).
     into_pocket = ~np.isfinite(_wall_delta(s_rel, fc.t, model.columns, model.block_length))
     for name, c in (("left", model.pocket_centres[0]), ("right", model.pocket_centres[1])):

@@ -227,8 +227,9 @@ def _underside(
 
 
 MAX_GONE = 0.3
-"""Share of the modelled face's pixels that `_recessed` may take out (a missing board and three chipped
-blocks of a EUR pallet are about a fifth of it)."""
+"""Share of the modelled face's pixels that `_recessed` may take out, the most evident cells first (a missing
+board and three chipped blocks of a EUR pallet are about a fifth of it, but nearly half with the margins
+around each hole: the clearest holes go out, the rest stay in rather than the fit losing most of the face)."""
 RECESS_SIGMAS = 4.0
 """How many standard errors of its median a cell must lie behind the face to count as missing (some
 twenty cells are tested, twice: 3 would take out a sound part of the face in about one frame in ten)."""
@@ -270,11 +271,14 @@ def _refit_face(
         if round_ < 2:
             # Cells found missing stay out: each is tested against the plane of the rest of the face, in
             # two passes (the second without the first's). A damaged pallet misses a few parts, never
-            # most of its face: more than `MAX_GONE` of it means a poor plane, not damage.
+            # most of its face: the cells go out most evident first, while at most `MAX_GONE` of it is
+            # out (more would mean a poor plane, not damage).
             usable = solid & ~gone & (np.abs(res) < trunc * sigma)
-            more = gone | _recessed(cells, all_rays, usable, fc.D, sigma, cfg)
-            if np.count_nonzero(solid & more) <= MAX_GONE * n_solid:
-                gone = more
+            for grown in _recessed(cells, all_rays, usable, fc.D, sigma, cfg):
+                more = gone.copy()
+                more[grown] = True
+                if np.count_nonzero(solid & more) <= MAX_GONE * n_solid:
+                    gone = more
         use = solid & ~gone & (np.abs(res) < trunc * sigma)
         if use.sum() < cfg.min_face_pixels:
             raise PalletNotFound("no_entry_face", f"only {int(use.sum())} pixels on the modelled entry face")
@@ -327,8 +331,9 @@ def _face_cells(model: _Model, fc: _FaceCoords, rays: _Rays, s0: float, z0: floa
 
 def _recessed(
     cells: _FaceCells, rays: _Rays, usable: np.ndarray, D: float, sigma: float, cfg: PalletEstimatorConfig
-) -> np.ndarray:
-    """Pixels of the modelled face that are not there (a damaged pallet): their rays end well behind it.
+) -> list[np.ndarray]:
+    """Parts of the modelled face that are not there (a damaged pallet): their rays end well behind it.
+    Returns each missing cell's pixels with a margin around it (indices of `rays`), most evident first.
 
     The cells of the face (`_face_cells`) are tested one by one. A cell is gone where the median
     inverse-depth residual of its pixels, against the plane fitted to the `usable` pixels outside it (so
@@ -337,7 +342,7 @@ def _recessed(
     margin around it are no evidence of the face: its edges border a hole (flying pixels, rays that pass
     the missing part's edge and end on the floor behind it).
     """
-    out = np.zeros(len(rays.w), bool)
+    out: list[tuple[float, np.ndarray]] = []
     total = cells.terms[usable].sum(axis=0)
     depth = cfg.missing_board_depth_m
     behind = depth / (D * (D + depth))  # in inverse depth
@@ -352,9 +357,10 @@ def _recessed(
         A, B = (syy * sxw - sxy * syw) / det, (sxx * syw - sxy * sxw) / det
         d = rays.d[inner]
         med = float(np.median(rays.w[inner] - (A * d[:, 0] + B * d[:, 1])))
-        if med < -behind and med < -RECESS_SIGMAS * 1.25 * sigma / np.sqrt(n):
-            out[grown] = True
-    return out
+        standard_error = 1.25 * sigma / np.sqrt(n)  # of the median
+        if med < -behind and med < -RECESS_SIGMAS * standard_error:
+            out.append((-med / standard_error, grown))
+    return [grown for _, grown in sorted(out, key=lambda c: -c[0])]
 
 
 def _pocket_edges(
@@ -374,9 +380,8 @@ def _pocket_edges(
     if model.ranges is not None:
         return _family_edges(model, fc, s0, band, sigma, cfg)
     trunc = cfg.truncation_sigma
-    edges = []
-    inner = [(0, 1), (1, 0), (1, 1), (2, 0)]  # (column, side): right pocket then left pocket
-    for col, side in inner:
+    offsets = []
+    for col, side in _INNER_EDGES:
         y_edge = model.columns[col, side]
         idx = np.flatnonzero(band & (np.abs(fc.s - s0 - y_edge) <= cfg.edge_search_m + 0.12))
         if idx.size < 10:
@@ -389,13 +394,36 @@ def _pocket_edges(
             cols_h[:, col, side] += egrid
             delta = _wall_delta(s_rel, fc.t[idx][:, None], cols_h, model.block_length)
             e, _ = _best(egrid, _cost(fc, idx, delta, model.block_length, sigma, trunc))
-        # Build tolerance moves an edge by millimetres; further off, the face is another pallet type.
-        limit = cfg.max_edge_offset_m + footprint  # a pixel more for the quantisation at a distance
-        if abs(e) > limit:
+        offsets.append(e)
+    # Build tolerance moves an edge by millimetres; further off, the face is another pallet type, unless a
+    # single edge lies further into its block, as a chipped block's edge does (`_chipped_edge`).
+    limit = cfg.max_edge_offset_m + footprint  # a pixel more for the quantisation at a distance
+    chipped = _chipped_edge(offsets, limit)
+    for k, ((col, side), e) in enumerate(zip(_INNER_EDGES, offsets, strict=True)):
+        if abs(e) > limit and k != chipped:
             raise PalletNotFound(
                 "pockets_inconsistent",
-                f"the block edge at y = {y_edge:+.3f} m of the {model.name} type is {1e3 * e:+.0f} mm off "
-                f"(more than {1e3 * limit:.0f} mm)",
+                f"the block edge at y = {model.columns[col, side]:+.3f} m of the {model.name} type is "
+                f"{1e3 * e:+.0f} mm off (more than {1e3 * limit:.0f} mm)",
             )
-        edges.append(y_edge + e)
-    return edges
+    if chipped is not None:  # the chipped edge where its pocket's other edge and the type put it
+        offsets[chipped] = offsets[chipped ^ 1]
+    return [float(model.columns[col, side] + e) for (col, side), e in zip(_INNER_EDGES, offsets, strict=True)]
+
+
+_INNER_EDGES = ((0, 1), (1, 0), (1, 1), (2, 0))
+"""The four block-column edges beside the pockets, as (column, side) of `_Model.columns` (right to left):
+the right pocket's right and left edge, then the left pocket's."""
+_INTO_BLOCK = (-1.0, 1.0, -1.0, 1.0)
+"""The sign of an offset (m, pallet y) that moves each of `_INNER_EDGES` into its block (its pocket wider)."""
+
+
+def _chipped_edge(offsets: list[float], limit: float) -> int | None:
+    """Which of the four edge `offsets` (m, `_INNER_EDGES` order) is a chipped block's, if one is: the only
+    one more than `limit` off, and off into its block. A chunk missing at a pocket's edge leaves the pocket
+    wider at the face, never narrower, and the forks enter where the other edge and the type put it. None
+    when no edge, or more than one, is off (then the face is not of this type)."""
+    off = [k for k, e in enumerate(offsets) if abs(e) > limit]
+    if len(off) != 1 or offsets[off[0]] * _INTO_BLOCK[off[0]] <= 0.0:
+        return None
+    return off[0]

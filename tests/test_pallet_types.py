@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 import yaml
 
-from palletpilot.bench.pallet import FrameSpec, render
+from palletpilot.bench.pallet import FrameSpec, render, standpoint
 from palletpilot.geometry import SE3
 from palletpilot.geometry.fileio import bundled_path
 from palletpilot.perception.calibration_io import Calibration
 from palletpilot.perception.errors import PerceptionError
 from palletpilot.perception.frames import FrameBundle
 from palletpilot.perception.pallet import PalletNotFound, estimate_pallet
+from palletpilot.perception.pallet_steps import _chipped_edge
 from palletpilot.perception.specs import (
     BUILTIN_PALLETS,
     PalletType,
@@ -214,6 +215,49 @@ def test_bad_pallet_type_in_a_scenario(tmp_path: Path, type_: str, words: str) -
 def test_each_family_is_estimated_within_the_goals(pallet: dict, loaded: bool, told: str) -> None:
     lat, lon, yaw = errors(frame(pallet, loaded), told)
     assert abs(lat) < 10.0 and abs(lon) < 15.0 and abs(yaw) < 0.5, (lat, lon, yaw)
+
+
+def test_a_badly_damaged_face_still_loses_its_clearest_missing_parts() -> None:
+    # Three chipped blocks (4 cm chunks) and the middle bottom board gone: with margins around each hole,
+    # more than `MAX_GONE` of the face tests as missing. The clearest holes must still go out of the fit;
+    # left in, they turned the face by -0.56 to -0.77 deg on each of these frames.
+    damage = {"chipped_blocks": 3, "chip_m": 0.04, "missing_bottom_boards": [1]}
+    pallet = (("tolerance_m", 0.005), ("tolerance_seed", 2078115594), ("damage", damage))
+    spec = FrameSpec("floor_a1", True, 0.038, 0.042, 6.4, 1.55, seed=2078115594, pallet=pallet)
+    yaws = [errors(f)[2] for f in standpoint(spec)(3)]
+    assert abs(float(np.mean(yaws))) < 0.3, yaws
+
+
+def test_a_damaged_pallet_seen_sharply_is_still_the_type() -> None:
+    # A noise-free camera sees the damage exactly. Three chipped blocks: a part built 2 mm proud lies off
+    # the face by more than the noise (before: "the block column ... is missing: 0 % on the face").
+    pallet = (("tolerance_m", 0.005), ("tolerance_seed", 5), ("damage", {"chipped_blocks": 3, "chip_m": 0.04}))
+    lat, _, yaw = errors(standpoint(FrameSpec("floor_b2", False, 0.02, 0.05, 3.0, 1.2, 5, pallet), noise=False)(1)[0])
+    assert abs(lat) < 10.0 and abs(yaw) < 0.5, (lat, yaw)
+    # And the middle bottom board gone: one inner block edge lies 20 mm and more into its block, the
+    # pocket wider at the face (before: "the block edge at y = +0.072 m ... is -20 mm off").
+    damage = {"chipped_blocks": 3, "chip_m": 0.03984374676167893, "missing_bottom_boards": [1]}
+    pallet = (("tolerance_m", 0.005), ("tolerance_seed", 2078115594), ("damage", damage))
+    spec = FrameSpec(
+        "floor_a1",
+        True,
+        0.038269265284270035,
+        0.04156403128141356,
+        6.409170928763917,
+        1.546670955682236,
+        2078115594,
+        pallet,
+    )
+    lat, _, yaw = errors(standpoint(spec, noise=False)(1)[0])
+    assert abs(lat) < 10.0 and abs(yaw) < 0.5, (lat, yaw)
+
+
+def test_only_one_edge_off_into_its_block_is_a_chip() -> None:
+    limit = 0.017
+    assert _chipped_edge([0.0, 0.002, -0.02, 0.001], limit) == 2  # the left pocket's right edge, into column 1
+    assert _chipped_edge([0.0, 0.002, 0.02, 0.001], limit) is None  # into the pocket: narrower, not a chip
+    assert _chipped_edge([-0.02, 0.002, -0.02, 0.001], limit) is None  # two edges off: another type
+    assert _chipped_edge([0.0, 0.002, 0.003, 0.001], limit) is None  # none off
 
 
 @pytest.mark.parametrize(
