@@ -35,6 +35,9 @@ Public API:
   `load_hidden_mask` (pallets cut off where their load would be); `perception.train_segmentation`
   trains the model, on batches from `perception.training_batches` (frames, crops, augmentation, workers).
 - `perception.realsense`: `RealSenseSource` (live D435/D435i), `RecordingSource` (.db3 recordings);
-  `perception.realsense_synthetic`: `write_software_recording` (a recording of synthetic frames).
+  its parts: `perception.realsense_frames` (librealsense frames to stamped bundles),
+  `perception.realsense_distortion` (a stream's lens model as OpenCV's coefficients),
+  `perception.realsense_recording` (playback); `perception.realsense_synthetic`: `write_software_recording`
+  (a recording of synthetic frames).
 - `PerceptionError`: every perception failure.
 """

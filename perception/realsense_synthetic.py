@@ -1,7 +1,7 @@
 """Synthetic RealSense recordings: frames of your own written as a recording librealsense plays back.
 
 `write_software_recording` records depth and colour images through librealsense's `software_device`
-and `rs.recorder`, with no camera attached, so that the playback path (`realsense.RecordingSource`,
+and `rs.recorder`, with no camera attached, so that the playback path (`realsense_recording.RecordingSource`,
 `palletpilot capture --recording`) can be tested and demonstrated on any machine with pyrealsense2.
 
 Public API: `write_software_recording`.
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from palletpilot.perception.errors import PerceptionError
-from palletpilot.perception.realsense import import_pyrealsense2
+from palletpilot.perception.realsense_frames import import_pyrealsense2
 
 
 def write_software_recording(
