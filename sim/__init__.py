@@ -32,7 +32,7 @@ Rendering core (frames as in ARCHITECTURE.md: `T_a_b` maps b into a; the camera 
   frame, `CameraModel.d435(width, height)`, `CameraNoise` (`off()`, `sigma_z`), `Lighting`,
   `camera_mount_pose(position, tilt, pan, roll) -> T_forklift_camera`, `d435_color_intrinsics`,
   `d435_depth_focal_px`, `perturb_labels` (with label noise the exact labels stay in the truth as
-  `labels_true`).
+  `labels_true`); its noise model is `sim.camera_noise` (`CameraNoise`, `perturb_labels`).
 - `sim.dataset`: seeded segmentation datasets, `render_frame(index, seed, mounts=...)`,
   `generate_dataset(out_dir, n, seed, start, mounts=...)`; `mounts` is `all` or `pickup` (only mounts
   that `palletpilot calibrate` finds fit for the Pickup).

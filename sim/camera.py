@@ -12,26 +12,12 @@ Outputs, aligned pixel for pixel as `rs.align` gives them:
 - RGB: per-triangle base colour times a procedural texture (concrete, wood grain, cardboard, ...),
   Lambertian shading from a directional light plus ambient light and a ceiling-lamp pattern.
 
-Noise (`CameraNoise`), all drawn from the `numpy.random.Generator` passed in:
-
-- D435 stereo depth noise: a disparity error of `disparity_sigma_px` (0.08 px subpixel) turned into
-  depth through `z = f B / d`, so sigma(z) = z^2 s / (f B) with B = 0.050 m and f the depth
-  sensor's focal length in pixels at the stream resolution (`d435_depth_focal_px`);
-- flying pixels: at depth edges a share of pixels takes a depth between foreground and background;
-- correlated noise (`depth_correlation_px` > 1): the disparity errors are spread over patches of about that
-  many pixels (white noise blurred by a Gaussian, its per-pixel sigma kept), as real stereo block matching
-  and ToF filtering give them;
-- dropouts at `invalid_rate`, depth quantised to `depth_unit_m` (1 mm, the Z16 unit);
-- no depth closer than `min_depth_m` (0.28 m) or beyond `max_depth_m`;
-- stereo shadow (`stereo_shadow`): no depth where the right IR imager, `baseline_m` to the image right,
-  cannot see the point: the no-depth band on the image-left side of foreground objects, computed from
-  the exact depth (`sim.depth_artefacts`);
-- depth scale error (`depth_scale_error`): every depth times `1 + s`, s uniform in +-`depth_scale_error`,
-  fixed per camera (per seeded generator) and recorded in the bundle's truth as `depth_scale_true`;
-- `depth_noise: false` turns every depth artefact off (exact depth, only the range limits apply);
-- optional label noise: each class's boundary dilated or eroded by up to `label_noise_px` pixels (the
-  exact labels stay in the bundle's truth as `labels_true`);
-- RGB sensor noise and per-frame lighting variation.
+Noise (`CameraNoise`, `perturb_labels`: the noise model in `sim.camera_noise`, with what each imperfection
+means) is drawn from the `numpy.random.Generator` passed in: D435 stereo depth noise (optionally correlated
+over patches), flying pixels, dropouts, quantisation, stereo shadow (`sim.depth_artefacts`), a per-camera
+depth scale error (truth `depth_scale_true`), optional label noise (truth `labels_true`), RGB sensor
+noise and per-frame lighting variation; `depth_noise: false` turns every depth artefact off. The range
+limits (`min_depth_m`, 0.28 m, and `max_depth_m` of `CameraModel`) always apply.
 """
 
 from __future__ import annotations
@@ -45,23 +31,47 @@ import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike
-from pydantic import ConfigDict, Field
-from scipy import ndimage, special
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from palletpilot.geometry import SE3
-from palletpilot.geometry.fileio import FileModel
 from palletpilot.perception.frames import FrameBundle, SemanticClass
+from palletpilot.sim.camera_noise import (
+    D435_BASELINE_M,
+    D435_SUBPIXEL_PX,
+    CameraNoise,
+    _correlation_kernel,
+    _rgb_noise_luts,
+    perturb_labels,
+)
 from palletpilot.sim.depth_artefacts import depth_scale, shadow_candidates, stereo_shadow
 from palletpilot.sim.world import LabeledMesh, Texture, o3d_tensor
+
+__all__ = [
+    "D435_BASELINE_M",
+    "D435_COLOR_VFOV_DEG",
+    "D435_DEPTH_NATIVE_FOCAL_PX",
+    "D435_DEPTH_NATIVE_SIZE",
+    "D435_MAX_DEPTH_M",
+    "D435_MIN_DEPTH_M",
+    "D435_SUBPIXEL_PX",
+    "R_BODY_OPTICAL",
+    "CameraModel",
+    "CameraNoise",
+    "Lighting",
+    "RaycastRenderer",
+    "camera_mount_pose",
+    "d435_color_intrinsics",
+    "d435_depth_focal_px",
+    "perturb_labels",
+    "render",
+]
 
 D435_COLOR_VFOV_DEG = 42.8
 """Vertical field of view of the D435 colour imager (69.4 x 42.8 deg at 16:9; fx ~ 612 px at 480 rows)."""
 D435_DEPTH_NATIVE_SIZE = (1280, 800)
 D435_DEPTH_NATIVE_FOCAL_PX = 640.0
 """Depth imager focal length at its native 1280 x 800; stream modes scale then crop (640x480: 384 px)."""
-D435_BASELINE_M = 0.050
-D435_SUBPIXEL_PX = 0.08
 D435_MIN_DEPTH_M = 0.28
 D435_MAX_DEPTH_M = 10.0
 
@@ -114,48 +124,6 @@ class CameraModel:
     def d435(cls, width: int = 640, height: int = 480) -> CameraModel:
         """A D435-like camera at 640x480 or 848x480 (any size works; intrinsics scale as the real modes do)."""
         return cls(width, height, d435_color_intrinsics(width, height), d435_depth_focal_px(width, height))
-
-
-class CameraNoise(FileModel):
-    """Sensor imperfections; `CameraNoise.off()` is an ideal camera. Scenario files may carry this block."""
-
-    model_config = ConfigDict(frozen=True)
-
-    depth_noise: bool = True  # every depth artefact below; false: exact depth
-    disparity_sigma_px: float = Field(D435_SUBPIXEL_PX, ge=0, le=5.0, description="stereo subpixel error (px)")
-    baseline_m: float = Field(D435_BASELINE_M, gt=0, le=1.0)
-    depth_correlation_px: float = Field(
-        1.0, ge=1.0, le=100.0, description="correlation area (px) of the disparity noise; 1 = independent pixels"
-    )
-    depth_unit_m: float = Field(0.001, ge=0, le=0.1, description="depth quantisation (m); 0 = none")
-    invalid_rate: float = Field(0.005, ge=0, le=1, description="share of pixels randomly without depth")
-    flying_pixel_rate: float = Field(0.5, ge=0, le=1, description="share of depth-edge pixels that fly")
-    edge_jump_rel: float = Field(0.08, gt=0, le=1.0, description="depth jump (fraction of z) that makes an edge")
-    stereo_shadow: bool = Field(True, description="no depth where something hides the point from the right IR imager")
-    depth_scale_error: float = Field(
-        0.003, ge=0, le=0.05, description="max relative depth scale error, drawn once per camera in +-this"
-    )
-    label_noise: bool = False
-    label_noise_px: int = Field(2, ge=0, le=50, description="max boundary dilation / erosion (px)")
-    rgb_sigma: float = Field(2.0, ge=0, le=100.0, description="RGB sensor noise std (8-bit levels)")
-    lighting_variation: bool = True
-
-    @classmethod
-    def off(cls) -> CameraNoise:
-        """An ideal camera: exact depth (only the range limits apply), clean labels, steady light."""
-        return cls(
-            depth_noise=False,
-            stereo_shadow=False,
-            depth_scale_error=0.0,
-            label_noise=False,
-            rgb_sigma=0.0,
-            lighting_variation=False,
-        )
-
-    def sigma_z(self, z: ArrayLike, depth_focal_px: float) -> np.ndarray:
-        """Depth noise std (m) at z-depth z (m): z^2 s / (f B)."""
-        z = np.asarray(z, dtype=float)
-        return z * z * self.disparity_sigma_px / (depth_focal_px * self.baseline_m)
 
 
 @dataclass(frozen=True)
@@ -228,37 +196,6 @@ def _texture_tiles() -> tuple[np.ndarray, np.ndarray]:
         tiles[tex] = np.clip(1.0 + amplitude * pattern, 0.3, 1.7)
         texels_per_m[tex] = _TILE / metres
     return tiles, texels_per_m
-
-
-# -- label noise -------------------------------------------------------------------------------------
-
-
-def perturb_labels(labels: np.ndarray, max_px: int, rng: np.random.Generator) -> np.ndarray:
-    """Dilate or erode each class's region by a random 0..max_px pixels (a segmentation network's boundary error).
-
-    Classes are visited in random order. A dilation grows the class over its neighbours; an erosion
-    hands its boundary band to the neighbouring class (the highest id where several meet).
-    Returns a new uint8 image.
-    """
-    out = labels.copy()
-    if max_px <= 0:
-        return out
-    present = np.flatnonzero(np.bincount(labels.ravel(), minlength=256)).astype(np.uint8)  # np.unique, 4x faster
-    for cls in rng.permutation(present):
-        radius = int(rng.integers(0, max_px + 1))
-        grow = rng.random() < 0.5
-        if radius == 0:
-            continue
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-        mask = (out == cls).astype(np.uint8)
-        if grow:
-            out[cv2.dilate(mask, kernel).astype(bool)] = cls
-            continue
-        band = mask.astype(bool) & ~cv2.erode(mask, kernel, borderType=cv2.BORDER_REPLICATE).astype(bool)
-        others = np.where(mask.astype(bool), np.uint8(0), out)
-        neighbour = cv2.dilate(others, kernel, borderType=cv2.BORDER_REPLICATE)
-        out[band] = neighbour[band]
-    return out
 
 
 # -- the renderer ----------------------------------------------------------------------------------
@@ -591,43 +528,6 @@ class RaycastRenderer:
         np.copyto(depth, np.float32(0.0), where=np.less(depth, np.float32(camera.min_depth_m), out=rc.b[1]))
         np.copyto(depth, np.float32(0.0), where=np.greater(depth, np.float32(camera.max_depth_m), out=rc.b[1]))
         return depth
-
-
-@lru_cache(maxsize=8)
-def _correlation_kernel(area_px: float) -> tuple[np.ndarray, float]:
-    """A 1-D Gaussian kernel (float32 column) whose separable 2-D blur turns independent unit-variance
-    pixels into noise correlated over `area_px` pixels (the sum of its autocorrelation, `(sum k)^2 / sum k^2`
-    of the 2-D kernel), and the gain that brings that noise back to unit variance."""
-
-    def area(s: float) -> tuple[float, np.ndarray]:
-        half = max(1, int(np.ceil(4.0 * s)))
-        k = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
-        k /= k.sum()
-        return 1.0 / float(np.sum(k * k)) ** 2, k
-
-    lo, hi = 0.05, 10.0  # the Gaussian's sigma (px), by bisection on the area it gives
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if area(mid)[0] < area_px else (lo, mid)
-    got, k = area(0.5 * (lo + hi))
-    return k.astype(np.float32).reshape(-1, 1), float(np.sqrt(got))
-
-
-@lru_cache(maxsize=8)
-def _rgb_noise_luts(sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """Byte -> (positive part, negative part) of a Gaussian quantile of std `sigma` (8-bit levels).
-
-    Byte k stands for the normal quantile at (k + 0.5) / 256, rounded to whole levels and rescaled
-    so the 256 values have exactly the requested std; add one part and subtract the other.
-    """
-    quantiles = special.ndtri((np.arange(256) + 0.5) / 256.0)
-    levels = np.rint(quantiles * sigma)
-    if levels.std() > 0:
-        levels = np.rint(quantiles * sigma * sigma / levels.std())
-    return (
-        np.clip(levels, 0, 255).astype(np.uint8).reshape(256, 1),
-        np.clip(-levels, 0, 255).astype(np.uint8).reshape(256, 1),
-    )
 
 
 def render(
