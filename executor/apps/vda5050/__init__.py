@@ -15,9 +15,9 @@ Modules:
 - `mqtt`: `AgvLink` (paho-mqtt 2.x: topics, QoS, retained flags, last will, reconnects with backoff).
 - `persist`: the AGV's crash-safe journal (checkpoints of the order state on `executor.journal`, sessions,
   the writer thread).
-- `agv`: `Agv`, the vehicle driver (one runner per leg of the order), with its instant actions
-  (`instant`) and its journal side (`restart`); `vehicle`: the simulated or real truck behind it
-  (`sim_backend`, `robot_backend`, `TickClock`).
+- `agv`: `Agv`, the vehicle driver (one runner per leg of the order: `leg_run`, with `legs`), with its
+  instant actions (`instant`) and its journal side (`restart`); `vehicle`: the simulated or real truck
+  behind it (`sim_backend`, `robot_backend`, `TickClock`).
 
 The pure parts (`validation`, `models`, `actions`, `routes`, `orders`, `state`) need no broker and are
 re-exported here; `mqtt`, `agv` and `vehicle` are imported from their modules.
