@@ -198,7 +198,7 @@ def estimate_pallet(
     try:
         gate = config.instances.gate(envelope.lateral_m, envelope.longitudinal_m)
         labelled = dataclasses.replace(frame, labels=found.labels)
-        estimate = _estimate(labelled, T_cf, pallet, config, expected, found, gate)
+        estimate = _estimate(labelled, T_cf, pallet, config, expected, found, gate, support_height_m)
     except PalletNotFound as exc:
         note = sources_note(found)
         if not note:
@@ -217,9 +217,11 @@ def _estimate(
     expected: SE2 | None,
     found_labels: PalletLabels,
     gate: Gate,
+    support_height_m: float = 0.0,
 ) -> PalletEstimate:
     """`estimate_pallet`'s steps on a frame whose labels `found_labels` chose (forklift frame, m); `gate`:
-    the instance selection's (`InstanceConfig.gate`)."""
+    the instance selection's (`InstanceConfig.gate`); `support_height_m`: what the pallet stands on, as the
+    caller says (0: the floor)."""
     assert frame.labels is not None  # `pallet_labels` gives labels in every mode
     model = _Model.of(pallet)
     R, cam = T_cf.R, T_cf.t
@@ -284,7 +286,7 @@ def _estimate(
     centre_offset = 0.5 * (left_c + right_c)  # pocket-based centre relative to the model fit
     s0 += centre_offset
     if sides is not None:  # the measured face (relative to the pockets' centre) replaces the nominal one
-        model, z0, measured = _family_face(model, sides, centre_offset, z0, footprint)
+        model, z0, measured = _family_face(model, sides, centre_offset, z0, footprint, support_height_m)
         found = {**found, **measured}
         if cov3 is None:  # the face refitted on the pixels the measured face (not the nominal one) puts on it
             cargo = on_deck[all_rays.rows, all_rays.cols]

@@ -459,7 +459,7 @@ def _check_family(model: _Model, widths: tuple[float, float], footprint: float) 
 
 
 def _family_face(
-    model: _Model, sides: list[float], centre_offset: float, z0: float, footprint: float
+    model: _Model, sides: list[float], centre_offset: float, z0: float, footprint: float, support_m: float = 0.0
 ) -> tuple[_Model, float, dict[str, object]]:
     """A family's measured face: the model at the six measured column edges `sides` (pallet y relative
     to the model fit's centre; the pallet's centre is `centre_offset` from it), the underside height `z0`
@@ -469,13 +469,14 @@ def _family_face(
     measured; the pocket height needs the floor under the pallet. A pallet whose nominal underside lies
     within the family's pocket-height spread (and 2 cm) of the truck's floor (forklift z = 0) stands on
     it: the pocket height is the pocket top's height, the underside is the floor, and the height must
-    lie within the range. Elsewhere (a rack beam) the pocket height is not measured (None: the Pickup
-    then takes the family's lowest).
+    lie within the range. Elsewhere (a rack beam: the support's height `support_m` the caller gives is not
+    the floor's, however low the beam) the pocket height is not measured (None: the Pickup then takes the
+    family's lowest; a beam's height in the map is not known to the millimetre the fork tops need).
     """
     assert model.ranges is not None
     top = z0 + model.block_top
     lo, hi = model.ranges["pocket_height"]
-    on_floor = abs(z0) <= max(hi - model.block_top, model.block_top - lo) + 0.02
+    on_floor = abs(support_m) < 1e-3 and abs(z0) <= max(hi - model.block_top, model.block_top - lo) + 0.02
     height = top if on_floor else None
     if height is not None:
         tol = footprint + 0.005

@@ -103,6 +103,22 @@ def test_a_family_on_a_rack_reports_no_pocket_height_but_the_pocket_top() -> Non
     assert est.extras["pocket_top_z_m"] == pytest.approx(true_z + 0.1, abs=0.006)
 
 
+def test_a_family_on_a_low_support_is_not_measured_from_the_floor() -> None:
+    # A pallet on a beam or platform 3 cm up (a real rack's lowest beam stood 6 cm up in a ToF camera's
+    # frames): its pocket top, 3 cm higher than on the floor, must not be taken for a pocket height measured
+    # from the floor (refused as outside the family). The support height the caller gives says where the
+    # pallet stands; off the floor, the pocket height is not measured.
+    from palletpilot.perception.pallet_model import _family_face, _Model
+
+    model = _Model.of(pallet_type(FAMILY))
+    sides = [float(v) for v in model.columns.reshape(-1)]
+    _, z0, measured = _family_face(model, sides, 0.0, 0.03, 0.004, support_m=0.03)
+    assert measured["pocket_height_m"] is None
+    assert measured["pocket_top_z_m"] == pytest.approx(0.03 + model.block_top) and z0 == pytest.approx(0.03)
+    _, z0, measured = _family_face(model, sides, 0.0, 0.003, 0.004)  # on the floor: measured from it
+    assert measured["pocket_height_m"] == pytest.approx(0.003 + model.block_top) and z0 == 0.0
+
+
 def test_pallets_outside_the_family_are_refused(tmp_path: Path) -> None:
     wide = tmp_path / "wide_pockets.yaml"  # columns 60 / 80 / 60 mm: pockets 300 mm, past the 280 mm range
     wide.write_text(yaml.safe_dump({"name": "wide pockets", "block_columns": [0.06, 0.08, 0.06]}))
