@@ -618,7 +618,7 @@ class SafetyCheck(Behaviour):
         if (
             stood is not None
             and here.distance_to(stood) < STANCE_SAME_M
-            and abs(math.remainder(here.yaw - stood.yaw, 2.0 * math.pi)) < math.radians(STANCE_SAME_DEG)
+            and abs(angle_diff(here.yaw, stood.yaw)) < math.radians(STANCE_SAME_DEG)
         ):
             self.fixes = [stood] * STANCE_FIXES  # the estimate's own stance: both checks judge the same pose
 
